@@ -1,0 +1,74 @@
+"""Vehicle and inner-loop controller parameters, with units in every name.
+
+These are validated dataclasses (pydantic) so that they can be loaded from YAML
+with errors that name the offending path. The default vehicle is the Bitcraze
+Crazyflie 2.0; sources are cited in docs/vehicle.md.
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import ConfigDict, Field
+from pydantic.dataclasses import dataclass
+
+STRICT = ConfigDict(extra="forbid", frozen=True)
+
+GRAVITY_MPS2 = 9.80665
+
+
+@dataclass(config=STRICT)
+class VehicleParams:
+    """Rigid-body and rotor parameters of one quadrotor (plus configuration, eq. 6).
+
+    Rotor k sits at d on body axis (+x, +y, -x, -y) for k = 1..4 as in eq. 6's mixer.
+    """
+
+    mass_kg: float = Field(0.030, gt=0)
+    inertia_xx_kgm2: float = Field(1.43e-5, gt=0)
+    inertia_yy_kgm2: float = Field(1.43e-5, gt=0)
+    inertia_zz_kgm2: float = Field(2.89e-5, gt=0)
+    arm_length_m: float = Field(0.043, gt=0)
+    thrust_coeff_n_per_radps2: float = Field(2.3e-8, gt=0)
+    """k_f in eq. 6: rotor thrust = k_f * Q**2."""
+    torque_to_thrust_m: float = Field(0.0339, gt=0)
+    """c_tau_f in eq. 6: rotor reaction torque per newton of thrust."""
+    rotor_speed_min_radps: float = Field(0.0, ge=0)
+    rotor_speed_max_radps: float = Field(2500.0, gt=0)
+    motor_time_constant_s: float = Field(0.005, ge=0)
+    """First-order motor lag; 0 means instantaneous rotors."""
+    drag_coeff_n_per_mps: float = Field(0.0, ge=0)
+    """Linear translational drag, F = -c * (v - wind). Zero by default (do-nothing default)."""
+
+
+@dataclass(config=STRICT)
+class GeometricGains:
+    """Gains of the geometric SE(3) controller, eq. 9 and eq. 14, normalised.
+
+    Translational gains are per unit mass (k_x = mass * kx_per_s2) and rotational
+    gains per unit inertia (k_R = J * kR_per_s2, diagonal), so the same numbers fit
+    any airframe. See docs/controllers.md.
+    """
+
+    kx_per_s2: float = Field(4.0, ge=0)
+    kv_per_s: float = Field(4.0, ge=0)
+    kR_per_s2: float = Field(400.0, gt=0)
+    kOmega_per_s: float = Field(40.0, gt=0)
+    tilt_max_deg: float = Field(50.0, gt=0, le=89.0)
+    acc_max_mps2: float = Field(12.0, gt=0)
+    """Norm limit on the commanded acceleration before thrust/tilt saturation."""
+
+
+@dataclass(config=STRICT)
+class PIDGains:
+    """Integral pole placement of the PID baseline; the P and D terms are derived
+    from GeometricGains so that both controllers share their small-angle poles."""
+
+    att_integral_pole_per_s: float = Field(2.0, ge=0)
+    vel_integral_pole_per_s: float = Field(0.5, ge=0)
+
+
+@dataclass(config=STRICT)
+class InnerLoopConfig:
+    controller: Literal["geometric", "pid"] = "geometric"
+    geometric: GeometricGains = GeometricGains()
+    pid: PIDGains = PIDGains()
