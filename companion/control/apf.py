@@ -1,0 +1,256 @@
+"""Artificial-potential-field collision avoidance, paper eq. 29-31 (pure numpy).
+
+Eq. 29-30 as printed: phi(d) = -(e^{k d} - e^{k}), applied along the unit vector
+TOWARD the other body, (x_j - x_i)/|x_j - x_i|. For k > 0 and d < 1, phi > 0, so
+the printed law attracts. We implement the evident repulsive intent with an
+explicit length scale and amplitude. With dbar = d / influence:
+
+    psi(dbar) = (exp(kappa (1 - dbar)) - 1) / (exp(kappa) - 1)   for dbar < 1, else 0,
+
+psi(0) = 1, psi(1) = 0, continuous, strictly decreasing (any kappa != 0;
+kappa -> 0 gives the linear 1 - dbar), and the acceleration points AWAY from the
+other body with magnitude gain * psi. So gains (K4, K5) are peak repulsive
+accelerations per body in m/s^2. Relation to the printed form with k = -kappa:
+
+    phi(dbar) = e^{-kappa} - e^{-kappa dbar}
+              = -e^{-kappa dbar} (1 - e^{-kappa (1 - dbar)})
+              = -(1 - e^{-kappa}) psi(dbar),
+
+i.e. the printed phi with a negative exponent times the toward-vector is our
+away-push with K4_ours = (1 - e^{-kappa}) K4_paper, and the printed zero at
+d = 1 (in unspecified units) becomes d = influence radius. kappa > 0 concentrates
+the push near contact; kappa < 0 spreads it out.
+
+Distances are Euclidean in NED metres; accelerations NED m/s^2.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["psi", "vehicle_repulsion", "obstacle_repulsion", "combined_accel", "TIE_BREAK_DIR_NED"]
+
+TIE_BREAK_DIR_NED = np.array([1.0, 0.0, 0.0])
+"""Push direction for coincident bodies (north, horizontal: never into the ground).
+Between two vehicles the higher index is pushed +north and the lower -north, so
+the pair separates deterministically."""
+
+_PAIR_CHUNK = 1 << 20  # max (query, other) pairs held in memory at once
+
+
+def psi(dbar: np.ndarray, kappa: float) -> np.ndarray:
+    """Normalised repulsion profile: 1 at dbar <= 0, 0 at dbar >= 1, decreasing.
+
+    Evaluated without overflow for any finite kappa (|kappa| up to ~1e300).
+
+    Args:
+        dbar: any shape, distance / influence distance (<= 0 counts as contact).
+        kappa: shape parameter (k_APF of eq. 29 with flipped sign), finite.
+
+    Returns:
+        Same shape as dbar, in [0, 1].
+
+    Raises:
+        ValueError: kappa not finite.
+    """
+    if not np.isfinite(kappa):
+        raise ValueError(f"kappa must be finite, got {kappa!r}")
+    x = np.clip(np.asarray(dbar, dtype=float), 0.0, 1.0)
+    if abs(kappa) < 1e-12:
+        out = 1.0 - x
+    elif kappa > 0:
+        # e^{-k x} (1 - e^{-k (1 - x)}) / (1 - e^{-k}): all exponents <= 0.
+        out = np.exp(-kappa * x) * np.expm1(-kappa * (1.0 - x)) / np.expm1(-kappa)
+    else:
+        out = np.expm1(kappa * (1.0 - x)) / np.expm1(kappa)  # exponents <= 0 already
+    return np.where(np.asarray(dbar) >= 1.0, 0.0, out)
+
+
+def _check_positive(**kw) -> None:
+    for name, v in kw.items():
+        if not (np.isfinite(v) and v > 0):
+            raise ValueError(f"{name} must be finite and > 0, got {v!r}")
+
+
+def _points(name: str, a) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    if a.ndim != 2 or a.shape[1] != 3:
+        raise ValueError(f"{name} must have shape (N, 3), got {a.shape}")
+    return a
+
+
+def vehicle_repulsion(
+    pos_ned_m: np.ndarray,
+    others_pos_ned_m: np.ndarray,
+    gain_mps2: float,
+    influence_radius_m: float,
+    sensing_radius_m: float,
+    kappa: float,
+    self_index: np.ndarray | None = None,
+    query_index: np.ndarray | None = None,
+) -> np.ndarray:
+    """Inter-vehicle repulsion, first term of eq. 30 (normalised, repulsive).
+
+        u_i = gain * sum_{j sensed, j != i} psi(|x_i - x_j| / influence) (x_i - x_j) / |x_i - x_j|
+
+    Every body within the sensing radius counts, not just the consensus
+    neighbours of eq. 27: with the paper's chain topology vehicle i hears only
+    i-1 and would otherwise fly straight through everyone else. Bodies beyond
+    min(sensing, influence) contribute nothing; if sensing < influence the field
+    is truncated (jumps to zero) at the sensing radius, so keep sensing >=
+    influence. Rows of others_pos that are non-finite (unknown) are ignored.
+
+    One code path for a fleet and for one vehicle:
+        fleet:       vehicle_repulsion(P, P, ..., self_index=np.arange(N))
+        vehicle i:   vehicle_repulsion(P[[i]], P, ..., self_index=[i])
+    The second equals row i of the first.
+
+    Coincident bodies (distance < 1e-9 m) are pushed along +-TIE_BREAK_DIR_NED at
+    full gain: +north if query_index > j, else -north. query_index defaults to
+    self_index (or to +north for every pair when neither is given).
+
+    Cost: O(N M) time; memory bounded by chunking over query rows.
+
+    Args:
+        pos_ned_m: (N, 3) query vehicle positions, NED metres.
+        others_pos_ned_m: (M, 3) positions of all other bodies, NED metres.
+        gain_mps2: K4, peak acceleration from one body at contact, m/s^2, >= 0.
+        influence_radius_m: distance at which the push vanishes, > 0.
+        sensing_radius_m: bodies further than this are not perceived, > 0.
+        kappa: profile shape, see psi.
+        self_index: (N,) index in others_pos of each query vehicle itself (that
+            entry is skipped), or -1 / None if it is not in others_pos.
+        query_index: (N,) global indices of the query vehicles, for the
+            coincidence tie-break only; default self_index.
+
+    Returns:
+        (N, 3) repulsive acceleration, NED m/s^2.
+
+    Raises:
+        ValueError: bad shapes, non-finite query positions, bad radii or gain.
+    """
+    p = _points("pos_ned_m", pos_ned_m)
+    q = _points("others_pos_ned_m", others_pos_ned_m)
+    n, m = p.shape[0], q.shape[0]
+    _check_positive(influence_radius_m=influence_radius_m, sensing_radius_m=sensing_radius_m)
+    if not (np.isfinite(gain_mps2) and gain_mps2 >= 0):
+        raise ValueError(f"gain_mps2 must be finite and >= 0, got {gain_mps2!r}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError("pos_ned_m has non-finite entries")
+    self_idx = np.full(n, -1) if self_index is None else np.broadcast_to(np.asarray(self_index, dtype=int), (n,))
+    qidx = self_idx if query_index is None else np.broadcast_to(np.asarray(query_index, dtype=int), (n,))
+    cutoff = min(sensing_radius_m, influence_radius_m)
+    known = np.all(np.isfinite(q), axis=1)
+    q = np.where(known[:, None], q, 0.0)  # placeholders, masked out below
+    out = np.zeros((n, 3))
+    step = max(1, _PAIR_CHUNK // max(m, 1))
+    cols = np.arange(m)
+    for a in range(0, n, step):
+        b = min(a + step, n)
+        diff = p[a:b, None, :] - q[None, :, :]  # (n_c, M, 3), away from the other body
+        dist = np.linalg.norm(diff, axis=-1)
+        use = known[None, :] & (cols[None, :] != self_idx[a:b, None]) & (dist < cutoff)
+        mag = np.where(use, gain_mps2 * psi(dist / influence_radius_m, kappa), 0.0)
+        tiny = dist < 1e-9
+        sign = np.where(qidx[a:b, None] > cols[None, :], 1.0, -1.0)
+        sign = np.where(qidx[a:b, None] < 0, 1.0, sign)
+        unit = np.where(
+            tiny[..., None],
+            sign[..., None] * TIE_BREAK_DIR_NED,
+            diff / np.where(tiny, 1.0, dist)[..., None],
+        )
+        out[a:b] = np.einsum("nm,nmk->nk", mag, unit)
+    return out
+
+
+def obstacle_repulsion(
+    pos_ned_m: np.ndarray,
+    centres_ned_m: np.ndarray,
+    radii_m: np.ndarray,
+    gain_mps2: float,
+    influence_m: float,
+    kappa: float,
+) -> np.ndarray:
+    """Spherical-obstacle repulsion, second term of eq. 30 (normalised, repulsive).
+
+    Distance is measured to the sphere SURFACE, d = |x - o| - R, so the push is
+    the full gain at and inside the surface (d <= 0) and vanishes at d >=
+    influence_m. Direction: away from the centre (+north at the exact centre).
+
+    Args:
+        pos_ned_m: (N, 3) vehicle positions, NED metres.
+        centres_ned_m: (K, 3) sphere centres, NED metres (K may be 0).
+        radii_m: (K,) sphere radii, metres, >= 0.
+        gain_mps2: K5, peak acceleration from one obstacle, m/s^2, >= 0.
+        influence_m: surface distance at which the push vanishes, > 0.
+        kappa: profile shape, see psi.
+
+    Returns:
+        (N, 3) repulsive acceleration, NED m/s^2.
+
+    Raises:
+        ValueError: bad shapes, non-finite inputs, negative radii, bad gain.
+    """
+    p = _points("pos_ned_m", pos_ned_m)
+    o = np.asarray(centres_ned_m, dtype=float).reshape(-1, 3)
+    r = np.asarray(radii_m, dtype=float).reshape(-1)
+    if r.shape[0] != o.shape[0]:
+        raise ValueError(f"radii_m has {r.shape[0]} entries for {o.shape[0]} centres")
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(o)) and np.all(np.isfinite(r))):
+        raise ValueError("obstacle_repulsion inputs must be finite")
+    if np.any(r < 0):
+        raise ValueError("obstacle radii must be >= 0")
+    _check_positive(influence_m=influence_m)
+    if not (np.isfinite(gain_mps2) and gain_mps2 >= 0):
+        raise ValueError(f"gain_mps2 must be finite and >= 0, got {gain_mps2!r}")
+    diff = p[:, None, :] - o[None, :, :]  # (N, K, 3), K is small
+    dist_c = np.linalg.norm(diff, axis=-1)
+    tiny = dist_c < 1e-9
+    unit = np.where(tiny[..., None], TIE_BREAK_DIR_NED, diff / np.where(tiny, 1.0, dist_c)[..., None])
+    mag = gain_mps2 * psi((dist_c - r[None, :]) / influence_m, kappa)
+    return np.einsum("nk,nkc->nc", mag, unit)
+
+
+def _clip_norm(u: np.ndarray, max_norm: float) -> np.ndarray:
+    norm = np.linalg.norm(u, axis=-1, keepdims=True)
+    scale = np.minimum(1.0, max_norm / np.maximum(norm, 1e-300))
+    return u * scale
+
+
+def combined_accel(
+    u1_ned_mps2: np.ndarray,
+    u2_ned_mps2: np.ndarray,
+    u1_max_mps2: float,
+    total_max_mps2: float,
+) -> np.ndarray:
+    """Eq. 31, u = u1 + u2, with acceleration limits.
+
+    The consensus part u1 is norm-clipped to u1_max first, then the APF part u2
+    is added, then the total is norm-clipped to total_max. Clipping u1 first
+    bounds how hard the formation can pull: a large slot error (e.g. the
+    formation centre on the far side of an obstacle) would otherwise give a u1
+    of tens of m/s^2 that swamps the repulsion. With u1 bounded, a vehicle at an
+    obstacle surface gets an outward component of at least K5 - u1_max > 0 when
+    K5 > u1_max (other vehicles' pushes aside), and norm clipping only rescales
+    the vector, so the final total keeps that outward sign. Clipping only the
+    sum would not give this guarantee.
+
+    Args:
+        u1_ned_mps2: (N, 3) consensus acceleration (eq. 27).
+        u2_ned_mps2: (N, 3) repulsion (eq. 30).
+        u1_max_mps2: norm limit of u1, > 0 (np.inf allowed).
+        total_max_mps2: norm limit of the sum, > 0 (np.inf allowed).
+
+    Returns:
+        (N, 3) commanded acceleration, NED m/s^2.
+
+    Raises:
+        ValueError: shape mismatch or non-positive limits.
+    """
+    u1 = np.asarray(u1_ned_mps2, dtype=float)
+    u2 = np.asarray(u2_ned_mps2, dtype=float)
+    if u1.shape != u2.shape or u1.ndim != 2 or u1.shape[1] != 3:
+        raise ValueError(f"u1 and u2 must both be (N, 3), got {u1.shape} and {u2.shape}")
+    for name, v in (("u1_max_mps2", u1_max_mps2), ("total_max_mps2", total_max_mps2)):
+        if not v > 0:
+            raise ValueError(f"{name} must be > 0, got {v!r}")
+    return _clip_norm(_clip_norm(u1, u1_max_mps2) + u2, total_max_mps2)

@@ -1,0 +1,382 @@
+"""Consensus formation control, paper eq. 23-28 (pure numpy, no I/O).
+
+Model (eq. 23-24): every vehicle is a double integrator with 6-state
+x_i = [p_i; v_i] (NED metres, m/s) and input u_i = commanded acceleration (NED
+m/s^2):  x_i' = A x_i + B u_i,  A = [[0, I3], [0, 0]],  B = [[0], [I3]].
+
+Formation reference (eq. 25): h_i(t) = r_i + c(t), with r_i the constant slot
+offset and c(t) the virtual centre; as a 6-state h_i = [r_i + c; c'].
+
+Control law (eq. 27, plus our feed-forward term, docs/formation.md):
+    u1_i = K1 x_i + K2 (x_i - h_i) + K3 sum_j w_ij ((x_j - h_j) - (x_i - h_i)) + h_i''
+
+Closed loop (eq. 28), stacked vehicle-major (x = [x_1; ...; x_N]):
+    x' = (I_N kron (A + B K1 + B K2) - L kron B K3) x + (L kron B K3 - I_N kron B K2) h
+         + (I_N kron B) h''.
+
+Gain signs. The paper gives no signs. We keep the literal sign of eq. 27: K2
+multiplies (x - h), so it must be NEGATIVE (k2_pos < 0, k2_vel < 0) to pull
+towards the slot; K3 multiplies (neighbour error - own error), so it must be
+POSITIVE. K1 acts on the absolute state; it defaults to zero because any nonzero
+K1 biases the formation (the forcing B K1 h does not vanish at x = h).
+"""
+from __future__ import annotations
+
+from typing import Literal
+
+import numpy as np
+from pydantic import ConfigDict, Field
+from pydantic.dataclasses import dataclass
+
+from companion.control import topology as _topo
+
+__all__ = [
+    "A_DOUBLE_INTEGRATOR",
+    "B_DOUBLE_INTEGRATOR",
+    "ConsensusGains",
+    "FormationUnstableError",
+    "formation_reference",
+    "consensus_accel",
+    "closed_loop_matrix",
+    "mode_eigenvalues",
+    "check_stability",
+    "STABILITY_MARGIN",
+    "KRON_MAX_N",
+]
+
+STRICT = ConfigDict(extra="forbid", frozen=True)
+
+_I3 = np.eye(3)
+_Z3 = np.zeros((3, 3))
+A_DOUBLE_INTEGRATOR = np.block([[_Z3, _I3], [_Z3, _Z3]])  # eq. 24, (6, 6)
+B_DOUBLE_INTEGRATOR = np.vstack([_Z3, _I3])  # eq. 24, (6, 3)
+
+STABILITY_MARGIN = 1e-9
+"""Closed-loop eigenvalues with real part > -STABILITY_MARGIN count as unstable
+(marginal stability is a failure: a zero eigenvalue leaves an error that never decays)."""
+
+KRON_MAX_N = 150
+"""Largest fleet for which check_stability(method="kron") builds the (6N, 6N) matrix."""
+
+
+@dataclass(config=STRICT)
+class ConsensusGains:
+    """Gains K1, K2, K3 of eq. 27 as per-block scalars: K = [k_pos I3, k_vel I3] (3x6).
+
+    Literal sign of eq. 27 (see module docstring): k2_* < 0, k3_* > 0 for
+    stability; no sign is enforced here because check_stability is the authority
+    (it also covers the coupling with the topology). Defaults give, per axis,
+    leader poles s = -0.6, -1.0 and chain-follower poles s = -0.54, -1.66 (all real:
+    no overshoot into neighbours) and a string-stable chain (docs/formation.md).
+    """
+
+    k1_pos_per_s2: float = Field(0.0, allow_inf_nan=False)
+    k1_vel_per_s: float = Field(0.0, allow_inf_nan=False)
+    k2_pos_per_s2: float = Field(-0.6, allow_inf_nan=False)
+    k2_vel_per_s: float = Field(-1.6, allow_inf_nan=False)
+    k3_pos_per_s2: float = Field(0.3, allow_inf_nan=False)
+    k3_vel_per_s: float = Field(0.6, allow_inf_nan=False)
+
+    @staticmethod
+    def _block(k_pos: float, k_vel: float) -> np.ndarray:
+        return np.hstack([k_pos * _I3, k_vel * _I3])
+
+    @property
+    def k1(self) -> np.ndarray:
+        """K1, (3, 6)."""
+        return self._block(self.k1_pos_per_s2, self.k1_vel_per_s)
+
+    @property
+    def k2(self) -> np.ndarray:
+        """K2, (3, 6)."""
+        return self._block(self.k2_pos_per_s2, self.k2_vel_per_s)
+
+    @property
+    def k3(self) -> np.ndarray:
+        """K3, (3, 6)."""
+        return self._block(self.k3_pos_per_s2, self.k3_vel_per_s)
+
+    def summary(self) -> str:
+        return (
+            f"K1=(pos {self.k1_pos_per_s2:g}/s^2, vel {self.k1_vel_per_s:g}/s), "
+            f"K2=(pos {self.k2_pos_per_s2:g}/s^2, vel {self.k2_vel_per_s:g}/s), "
+            f"K3=(pos {self.k3_pos_per_s2:g}/s^2, vel {self.k3_vel_per_s:g}/s)"
+        )
+
+
+class FormationUnstableError(ValueError):
+    """The closed loop of eq. 28 is not Hurwitz for these gains and this topology.
+
+    Attributes:
+        eigenvalue: the worst closed-loop eigenvalue (largest real part).
+        laplacian_eigenvalue: the eigenvalue of L whose mode it belongs to.
+    """
+
+    def __init__(self, message: str, eigenvalue: complex, laplacian_eigenvalue: complex):
+        super().__init__(message)
+        self.eigenvalue = eigenvalue
+        self.laplacian_eigenvalue = laplacian_eigenvalue
+
+
+def _vec3(name: str, a) -> np.ndarray:
+    a = np.asarray(a, dtype=float)
+    if a.shape != (3,):
+        raise ValueError(f"{name} must have shape (3,), got {a.shape}")
+    return a
+
+
+def formation_reference(
+    offsets_ned_m: np.ndarray,
+    c_pos_ned_m: np.ndarray,
+    c_vel_ned_mps: np.ndarray,
+    c_acc_ned_mps2: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Slot references of eq. 25, h_i = r_i + c(t), and their derivatives.
+
+    The offsets r_i are constant, so h_i' = c' and h_i'' = c''.
+
+    Args:
+        offsets_ned_m: (N, 3) slot offsets r_i, NED metres.
+        c_pos_ned_m: (3,) formation centre c(t), NED metres.
+        c_vel_ned_mps: (3,) c'(t), NED m/s.
+        c_acc_ned_mps2: (3,) c''(t), NED m/s^2.
+
+    Returns:
+        (h_pos_ned_m, h_vel_ned_mps, h_acc_ned_mps2), each (N, 3), writable.
+
+    Raises:
+        ValueError: wrong shapes.
+    """
+    r = np.asarray(offsets_ned_m, dtype=float)
+    if r.ndim != 2 or r.shape[1] != 3:
+        raise ValueError(f"offsets_ned_m must be (N, 3), got {r.shape}")
+    c = _vec3("c_pos_ned_m", c_pos_ned_m)
+    cd = _vec3("c_vel_ned_mps", c_vel_ned_mps)
+    cdd = _vec3("c_acc_ned_mps2", c_acc_ned_mps2)
+    n = r.shape[0]
+    return r + c, np.tile(cd, (n, 1)), np.tile(cdd, (n, 1))
+
+
+def consensus_accel(
+    pos_ned_m: np.ndarray,
+    vel_ned_mps: np.ndarray,
+    h_pos_ned_m: np.ndarray,
+    h_vel_ned_mps: np.ndarray,
+    h_acc_ned_mps2: np.ndarray,
+    W: np.ndarray,
+    gains: ConsensusGains,
+    rows: np.ndarray | None = None,
+) -> np.ndarray:
+    """Consensus formation acceleration u1 of eq. 27 (+ feed-forward h''), NED m/s^2.
+
+        u1_i = K1 x_i + K2 (x_i - h_i) + K3 sum_j w_ij ((x_j - h_j) - (x_i - h_i)) + h_i''
+
+    The feed-forward h_i'' = c'' is our addition. With it the slot error
+    e_i = x_i - h_i obeys the autonomous closed loop of eq. 28 for ANY smooth c(t)
+    (because h_i' = A h_i + B h_i''), so a manoeuvring centre is tracked with zero
+    steady error. Without it an accelerating centre (e.g. the trapezoidal
+    transit profile) is followed with a lag of c''/|k2_pos| metres. A
+    constant-velocity centre needs no feed-forward: the velocity part of h_i in
+    K2 (x_i - h_i) already carries c'.
+
+    One code path for the whole fleet and for one onboard vehicle: `rows` selects
+    the vehicles whose command is computed. Only the states of `rows` and of the
+    vehicles they hear (W[rows, j] != 0) are read; every other row of pos/vel may
+    be NaN (the onboard companion knows only its neighbours). h is read for the
+    same vehicles (every agent can compute all slots from the shared mission).
+
+    Args:
+        pos_ned_m: (N, 3) positions, NED metres.
+        vel_ned_mps: (N, 3) velocities, NED m/s.
+        h_pos_ned_m, h_vel_ned_mps, h_acc_ned_mps2: (N, 3) slot references from
+            formation_reference (metres, m/s, m/s^2).
+        W: (N, N) weights, W[i, j] = how strongly i hears j (topology module).
+        gains: ConsensusGains.
+        rows: (R,) int indices of the vehicles to command; None = all N.
+
+    Returns:
+        (R, 3) commanded acceleration u1 (R = N when rows is None), NED m/s^2.
+
+    Raises:
+        ValueError: inconsistent shapes, rows out of range, or a state/reference
+            that is read (own or heard vehicle) is not finite.
+    """
+    pos = np.asarray(pos_ned_m, dtype=float)
+    vel = np.asarray(vel_ned_mps, dtype=float)
+    W = np.asarray(W, dtype=float)
+    n = pos.shape[0] if pos.ndim == 2 else -1
+    arrays = (pos, vel, h_pos_ned_m, h_vel_ned_mps, h_acc_ned_mps2)
+    if any(np.shape(a) != (n, 3) for a in arrays) or W.shape != (n, n):
+        shapes = ", ".join(str(np.shape(a)) for a in arrays)
+        raise ValueError(f"need pos, vel, h_pos, h_vel, h_acc of shape (N, 3) and W (N, N); got {shapes}, W {W.shape}")
+    if rows is not None:
+        rows = np.atleast_1d(np.asarray(rows))
+        if rows.ndim != 1 or not np.issubdtype(rows.dtype, np.integer) or np.any((rows < 0) | (rows >= n)):
+            raise ValueError(f"rows must be a 1-D integer array of indices in [0, {n}), got {rows!r}")
+
+    Wr = W if rows is None else W[rows]  # (R, N)
+    heard = np.flatnonzero(Wr.any(axis=0))  # vehicles any selected row hears
+    # Error states only of rows and heard vehicles: nothing else is ever read, so
+    # unknown (NaN) states elsewhere cannot leak in as 0 * NaN.
+    need = np.arange(n) if rows is None else np.union1d(rows, heard)
+    e_pos = pos[need] - np.asarray(h_pos_ned_m, dtype=float)[need]
+    e_vel = vel[need] - np.asarray(h_vel_ned_mps, dtype=float)[need]
+    h_acc = np.asarray(h_acc_ned_mps2, dtype=float)
+    h_acc = h_acc if rows is None else h_acc[rows]
+    bad = ~(np.isfinite(e_pos).all(axis=1) & np.isfinite(e_vel).all(axis=1))
+    if bad.any() or not np.isfinite(h_acc).all():
+        who = "all" if rows is None else rows.tolist()
+        raise ValueError(f"non-finite state or reference for vehicle(s) {need[bad].tolist()} read by vehicle(s) {who}")
+    sel = slice(None) if rows is None else np.searchsorted(need, rows)
+    hsel = heard if rows is None else np.searchsorted(need, heard)
+    Wh = Wr[:, heard]  # (R, H)
+    deg = Wh.sum(axis=1, keepdims=True)
+    # sum_j w_ij (e_j - e_i); a self-loop w_ii contributes w_ii (e_i - e_i) = 0.
+    c_pos = Wh @ e_pos[hsel] - deg * e_pos[sel]
+    c_vel = Wh @ e_vel[hsel] - deg * e_vel[sel]
+    # K = [k_pos I3, k_vel I3], so K x = k_pos p + k_vel v (no 3x6 products needed).
+    g = gains
+    u = g.k2_pos_per_s2 * e_pos[sel] + g.k2_vel_per_s * e_vel[sel]
+    u += g.k3_pos_per_s2 * c_pos + g.k3_vel_per_s * c_vel + h_acc
+    if g.k1_pos_per_s2 or g.k1_vel_per_s:
+        r_ = slice(None) if rows is None else rows
+        u += g.k1_pos_per_s2 * pos[r_] + g.k1_vel_per_s * vel[r_]
+    return u
+
+
+def _mode_blocks(gains: ConsensusGains) -> tuple[np.ndarray, np.ndarray]:
+    """M1 = A + B K1 + B K2 and M2 = B K3, both (6, 6)."""
+    A, B = A_DOUBLE_INTEGRATOR, B_DOUBLE_INTEGRATOR
+    return A + B @ gains.k1 + B @ gains.k2, B @ gains.k3
+
+
+def closed_loop_matrix(W: np.ndarray, gains: ConsensusGains) -> np.ndarray:
+    """State matrix of eq. 28: I_N kron (A + B K1 + B K2) - L kron (B K3).
+
+    State order is vehicle-major: rows 6i..6i+5 are [p_i; v_i] of vehicle i.
+    Memory is 288 N^2 bytes; prefer mode_eigenvalues for large N.
+
+    Args:
+        W: (N, N) weights.
+        gains: ConsensusGains.
+
+    Returns:
+        (6N, 6N) float array.
+
+    Raises:
+        ValueError: see topology.check_weights.
+    """
+    L = _topo.laplacian(W)
+    M1, M2 = _mode_blocks(gains)
+    return np.kron(np.eye(L.shape[0]), M1) - np.kron(L, M2)
+
+
+def mode_eigenvalues(W: np.ndarray, gains: ConsensusGains) -> tuple[np.ndarray, np.ndarray]:
+    """Closed-loop eigenvalues of eq. 28 without building the Kronecker matrix.
+
+    eig(I_N kron M1 - L kron M2) = union over eigenvalues lam_k of L of
+    eig(M1 - lam_k M2). Proof: Schur-triangularise L = Q T Q^H (always possible,
+    also for defective L). Then (Q kron I6)^H (I kron M1 - L kron M2)(Q kron I6)
+    = I kron M1 - T kron M2, which is block upper triangular with diagonal
+    blocks M1 - T_kk M2; a block triangular matrix's eigenvalues are those of its
+    diagonal blocks. No eigenvectors of L are needed, so the chain Laplacian,
+    which has a single (N-1)-sized Jordan block and is NOT diagonalisable, is
+    covered; its lam_k are taken exactly from its diagonal (laplacian_spectrum).
+
+    Args:
+        W: (N, N) weights.
+        gains: ConsensusGains.
+
+    Returns:
+        (eigenvalues (N, 6) complex, lam (N,) complex): row k holds the six
+        closed-loop eigenvalues of Laplacian mode lam[k].
+
+    Raises:
+        ValueError: see topology.check_weights.
+    """
+    lam = _topo.laplacian_spectrum(_topo.laplacian(W))
+    M1, M2 = _mode_blocks(gains)
+    blocks = M1[None, :, :] - lam[:, None, None] * M2[None, :, :]  # (N, 6, 6)
+    return np.linalg.eigvals(blocks), lam
+
+
+def _fmt(z: complex) -> str:
+    return f"{z.real:.3g}{z.imag:+.3g}j"
+
+
+def check_stability(
+    W: np.ndarray,
+    gains: ConsensusGains,
+    *,
+    topology_name: str | None = None,
+    method: Literal["reduction", "kron"] = "reduction",
+) -> np.ndarray:
+    """Check that the closed loop of eq. 28 is Hurwitz; return its eigenvalues.
+
+    method="reduction" (default, any N) uses mode_eigenvalues: exact Laplacian
+    spectrum per mode, O(N) small 6x6 problems, and it tells which mode failed.
+    method="kron" eigen-decomposes closed_loop_matrix (N <= KRON_MAX_N only); it
+    exists to cross-check the reduction. For directed chains it is numerically
+    poor: the closed loop inherits L's (N-1)-sized Jordan blocks, whose computed
+    eigenvalues scatter by ~eps**(1/(N-1)).
+
+    Marginal stability (real part > -STABILITY_MARGIN) is a failure: e.g. K2 = 0
+    (pure consensus, eq. 20) leaves the lam = 0 mode undamped and the swarm would
+    drift off its slots together.
+
+    For real lam >= 0 each axis has characteristic polynomial
+    s^2 - (k1v + k2v - lam k3v) s - (k1p + k2p - lam k3p), Hurwitz iff both
+    brackets are negative; complex lam (directed cycles) need the eigenvalues.
+
+    Args:
+        W: (N, N) weights.
+        gains: ConsensusGains.
+        topology_name: for the error message; default inferred (topology.describe).
+        method: "reduction" or "kron".
+
+    Returns:
+        (6N,) complex closed-loop eigenvalues (mode-major for "reduction").
+
+    Raises:
+        FormationUnstableError: some eigenvalue has real part > -STABILITY_MARGIN;
+            the message names the worst one, its real part, its Laplacian mode and
+            the gains and topology.
+        ValueError: bad W, unknown method, or kron requested for N > KRON_MAX_N.
+    """
+    W = _topo.check_weights(W)
+    n = W.shape[0]
+    per_mode, lam = mode_eigenvalues(W, gains)
+    if method == "reduction":
+        eig = per_mode.ravel()
+    elif method == "kron":
+        if n > KRON_MAX_N:
+            raise ValueError(f"method='kron' builds a ({6 * n}, {6 * n}) matrix; use 'reduction' for N > {KRON_MAX_N}")
+        eig = np.linalg.eigvals(closed_loop_matrix(W, gains))
+    else:
+        raise ValueError(f"unknown method {method!r}; use 'reduction' or 'kron'")
+    worst = int(np.argmax(eig.real))
+    s = complex(eig[worst])
+    if s.real > -STABILITY_MARGIN:
+        # Attribute to the Laplacian mode with the nearest per-mode eigenvalue
+        # (identity for "reduction", nearest match for "kron").
+        k = int(np.argmin(np.abs(per_mode - s).min(axis=1)))
+        lam_k = complex(lam[k])
+        n_bad = int(np.sum(eig.real > -STABILITY_MARGIN))
+        name = topology_name or _topo.describe(W)
+        hint = ""
+        if abs(lam_k.imag) < 1e-12:
+            lr = lam_k.real
+            a_p = gains.k1_pos_per_s2 + gains.k2_pos_per_s2 - lr * gains.k3_pos_per_s2
+            a_v = gains.k1_vel_per_s + gains.k2_vel_per_s - lr * gains.k3_vel_per_s
+            hint = (
+                f"; this mode needs k1_pos + k2_pos - lam*k3_pos < 0 (is {a_p:.3g}) "
+                f"and k1_vel + k2_vel - lam*k3_vel < 0 (is {a_v:.3g})"
+            )
+        msg = (
+            f"closed-loop eigenvalue {_fmt(s)} (Laplacian eigenvalue {lam_k.real:.3g}"
+            f"{'' if abs(lam_k.imag) < 1e-12 else f'{lam_k.imag:+.3g}j'}, mode {k}) has real part "
+            f"{s.real:.3g} >= -{STABILITY_MARGIN:g}: formation gains {gains.summary()} are not "
+            f"Hurwitz for topology {name} ({n_bad} of {eig.size} eigenvalues fail){hint}"
+        )
+        raise FormationUnstableError(msg, s, lam_k)
+    return eig
