@@ -1,0 +1,183 @@
+"""Fused batch stepper: controller + allocation + rigid body in one numba loop.
+
+Every user of the physics calls ``Physics.step``. The loop runs vehicles in the outer
+and physics steps in the inner loop so that a vehicle's state stays in registers; the
+per-fleet wind sequence for the call is generated first (from the injected Generator)
+so results do not depend on loop order. Nothing is allocated inside the loop.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+from pydantic import ConfigDict, Field
+from pydantic.dataclasses import dataclass
+
+from companion.control import so3
+from companion.control.geometric import geometric_core, pack_control_params, pack_setpoint
+from companion.control.pid import pid_core
+from companion.params import GRAVITY_MPS2, InnerLoopConfig, VehicleParams
+from companion.state import FleetSetpoint, FleetState
+from sim_bridge.dynamics import allocate, motor_coeffs, pack_vehicle_params, rigid_body_step
+
+CTRL_GEOMETRIC, CTRL_PID = 0, 1
+
+
+@dataclass(config=ConfigDict(extra="forbid", frozen=True))
+class WindConfig:
+    """Fleet-wide wind: steady NED vector plus first-order Gauss-Markov gusts per axis.
+
+    Wind only acts through the linear drag (VehicleParams.drag_coeff_n_per_mps).
+    """
+
+    steady_ned_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    gust_std_mps: float = Field(0.0, ge=0)
+    """Stationary standard deviation of each gust component."""
+    gust_tau_s: float = Field(1.0, gt=0)
+    """Correlation time of the Gauss-Markov gust process."""
+
+
+def hover_rotor_speed_radps(vp: VehicleParams) -> float:
+    """Rotor speed at which the four rotors carry the weight: sqrt(m g / (4 k_f)).
+
+    Raises:
+        ValueError: if hover needs more than rotor_speed_max_radps.
+    """
+    q = math.sqrt(vp.mass_kg * GRAVITY_MPS2 / (4.0 * vp.thrust_coeff_n_per_radps2))
+    if q > vp.rotor_speed_max_radps:
+        raise ValueError(f"hover rotor speed {q:.0f} rad/s exceeds rotor_speed_max_radps")
+    return q
+
+
+def hover_state(n: int, vp: VehicleParams, pos_ned_m: np.ndarray | None = None) -> FleetState:
+    """N vehicles level, at rest, rotors at hover speed; pos_ned_m (N, 3) or origin."""
+    st = FleetState.zeros(n)
+    if pos_ned_m is not None:
+        st.pos_ned_m[...] = np.asarray(pos_ned_m, float)
+    st.rotor_speed_radps[...] = hover_rotor_speed_radps(vp)
+    return st
+
+
+@njit(cache=True)
+def _gusts(gust0, noise, phi, sig):
+    """Gauss-Markov g_{k+1} = phi g_k + sig n_k; returns (n_steps, 3) values used at step k."""
+    out = np.empty_like(noise)
+    g0, g1, g2 = gust0[0], gust0[1], gust0[2]
+    for k in range(noise.shape[0]):
+        out[k, 0], out[k, 1], out[k, 2] = g0, g1, g2
+        g0 = phi * g0 + sig * noise[k, 0]
+        g1 = phi * g1 + sig * noise[k, 1]
+        g2 = phi * g2 + sig * noise[k, 2]
+    gust0[0], gust0[1], gust0[2] = g0, g1, g2
+    return out
+
+
+@njit(cache=True)
+def _physics_loop(n_steps, active, pos, vel, rot, om, rotor, integ, sp, cprm, vprm, dt, ctrl, mot, wind, ground_z):
+    n_wind = wind.shape[0]
+    for i in range(pos.shape[0]):
+        if not active[i]:
+            continue
+        p = (pos[i, 0], pos[i, 1], pos[i, 2])
+        v = (vel[i, 0], vel[i, 1], vel[i, 2])
+        r = so3.load_mat(rot, i)
+        w = (om[i, 0], om[i, 1], om[i, 2])
+        q = (rotor[i, 0], rotor[i, 1], rotor[i, 2], rotor[i, 3])
+        xi = (integ[i, 0], integ[i, 1], integ[i, 2], integ[i, 3], integ[i, 4], integ[i, 5])
+        spi = sp[i]
+        for k in range(n_steps):
+            if ctrl == CTRL_GEOMETRIC:
+                f, m = geometric_core(p, v, r, w, spi, cprm)
+            else:
+                f, m, xi = pid_core(p, v, r, w, spi, cprm, xi, dt)
+            qc = allocate(f, m, vprm)
+            kw = k if n_wind > 1 else 0
+            wd = (wind[kw, 0], wind[kw, 1], wind[kw, 2])
+            p, v, r, w, q = rigid_body_step(p, v, r, w, q, qc, vprm, dt, mot, wd, ground_z)
+        pos[i, 0], pos[i, 1], pos[i, 2] = p
+        vel[i, 0], vel[i, 1], vel[i, 2] = v
+        so3.store_mat(rot, i, r)
+        om[i, 0], om[i, 1], om[i, 2] = w
+        rotor[i, 0], rotor[i, 1], rotor[i, 2], rotor[i, 3] = q
+        for k in range(6):
+            integ[i, k] = xi[k]
+
+
+_FIELDS = ("pos_ned_m", "vel_ned_mps", "rot_body_to_ned", "omega_body_radps", "rotor_speed_radps", "ctrl_integral")
+
+
+class Physics:
+    """Batch quadrotor physics with the inner-loop controller in the loop.
+
+    Args:
+        vehicle: airframe parameters.
+        inner: which controller runs every physics step, and its gains.
+        dt_s: physics step (s).
+        wind: optional WindConfig (acts through drag only).
+        ground_z_m: NED z of a flat ground (vehicles rest on it); None = no ground.
+        rng: Generator for the gust noise (required for reproducibility when gusts are on;
+            a fixed default_rng(0) is used if omitted).
+    Raises:
+        ValueError: if dt_s is not positive.
+    """
+
+    def __init__(self, vehicle: VehicleParams, inner: InnerLoopConfig, dt_s: float = 0.001,
+                 wind: WindConfig | None = None, ground_z_m: float | None = None,
+                 rng: np.random.Generator | None = None):
+        if not dt_s > 0:
+            raise ValueError("dt_s must be > 0")
+        self.vehicle, self.inner, self.dt_s = vehicle, inner, float(dt_s)
+        self.wind = wind or WindConfig()
+        self.ground_z_m = math.inf if ground_z_m is None else float(ground_z_m)
+        self.rng = rng if rng is not None else np.random.default_rng(0)
+        self._cprm = pack_control_params(vehicle, inner.geometric, inner.pid)
+        self._vprm = pack_vehicle_params(vehicle)
+        self._mot = motor_coeffs(vehicle.motor_time_constant_s, self.dt_s)
+        self._ctrl = CTRL_GEOMETRIC if inner.controller == "geometric" else CTRL_PID
+        sd = self.wind.gust_std_mps
+        self.gust_ned_mps = self.rng.normal(0.0, sd, 3) if sd > 0 else np.zeros(3)
+        self._phi = math.exp(-self.dt_s / self.wind.gust_tau_s)
+        self._sig = sd * math.sqrt(1.0 - self._phi ** 2)
+
+    def _wind_sequence(self, n_steps: int) -> np.ndarray:
+        steady = np.asarray(self.wind.steady_ned_mps, float)
+        if self.wind.gust_std_mps <= 0:
+            return steady[None, :].copy()
+        noise = self.rng.standard_normal((n_steps, 3))
+        return _gusts(self.gust_ned_mps, noise, self._phi, self._sig) + steady
+
+    def step(self, state: FleetState, setpoint: FleetSetpoint, n_steps: int = 1,
+             active: np.ndarray | None = None) -> None:
+        """Advance every active vehicle n_steps physics steps in place; controller (geometric
+        or PID per inner.controller) runs every physics step on the held setpoint. Inactive
+        vehicles are untouched.
+
+        Args:
+            state: FleetState (N), modified in place.
+            setpoint: FleetSetpoint (N), held for the n_steps.
+            active: (N,) bool mask, default all.
+        Raises:
+            ValueError: on size mismatch or negative n_steps.
+        """
+        n = state.n
+        if setpoint.n != n:
+            raise ValueError(f"setpoint N={setpoint.n} != state N={n}")
+        if n_steps < 0:
+            raise ValueError("n_steps must be >= 0")
+        act = np.ones(n, np.bool_) if active is None else np.ascontiguousarray(active, np.bool_)
+        if act.shape != (n,):
+            raise ValueError(f"active must have shape ({n},)")
+        if n_steps == 0 or n == 0:
+            return
+        arrays = []
+        for name in _FIELDS:
+            a = getattr(state, name)
+            if not (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous):
+                a = np.ascontiguousarray(a, np.float64)
+            arrays.append(a)
+        _physics_loop(int(n_steps), act, *arrays, pack_setpoint(setpoint), self._cprm, self._vprm, self.dt_s,
+                      self._ctrl, self._mot, self._wind_sequence(int(n_steps)), self.ground_z_m)
+        for name, a in zip(_FIELDS, arrays):
+            if a is not getattr(state, name):
+                getattr(state, name)[...] = a

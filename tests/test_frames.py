@@ -1,0 +1,79 @@
+"""Frame conventions: quaternion/Euler/matrix round trips, scipy ordering, SO(3) helpers."""
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from companion import frames
+from companion.control import so3
+
+
+def _random_quats(n, seed=0):
+    q = np.random.default_rng(seed).normal(size=(n, 4))
+    return q / np.linalg.norm(q, axis=1, keepdims=True)
+
+
+def test_quat_matrix_round_trip_and_scipy_agreement():
+    q = _random_quats(200)
+    r = frames.quat_wxyz_to_rot(q)
+    r_scipy = Rotation.from_quat(frames.wxyz_to_xyzw(q)).as_matrix()
+    np.testing.assert_allclose(r, r_scipy, atol=1e-12)
+    q2 = frames.rot_to_quat_wxyz(r)
+    q_canon = q * np.sign(q[:, :1])
+    np.testing.assert_allclose(q2, q_canon, atol=1e-12)
+    # scipy's canonical sign may differ: compare up to sign
+    qs = frames.xyzw_to_wxyz(Rotation.from_matrix(r).as_quat())
+    np.testing.assert_allclose(np.abs(np.sum(qs * q2, axis=1)), 1.0, atol=1e-12)
+
+
+def test_wxyz_xyzw_helpers():
+    q = np.array([[0.1, 0.2, 0.3, 0.4]])
+    np.testing.assert_array_equal(frames.wxyz_to_xyzw(q), [[0.2, 0.3, 0.4, 0.1]])
+    np.testing.assert_array_equal(frames.xyzw_to_wxyz(frames.wxyz_to_xyzw(q)), q)
+    assert np.allclose(frames.quat_wxyz_to_rot(np.array([1.0, 0, 0, 0])), np.eye(3))
+
+
+def test_euler_round_trip_and_scipy_zyx():
+    rng = np.random.default_rng(1)
+    n = 300
+    eul = np.stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-1.5, 1.5, n), rng.uniform(-np.pi, np.pi, n)], 1)
+    r = frames.euler_zyx_to_rot(eul[:, 0], eul[:, 1], eul[:, 2])
+    r_scipy = Rotation.from_euler("ZYX", eul[:, ::-1]).as_matrix()  # intrinsic yaw, pitch, roll
+    np.testing.assert_allclose(r, r_scipy, atol=1e-12)
+    np.testing.assert_allclose(frames.rot_to_euler_zyx(r), eul, atol=1e-10)
+    q = frames.euler_zyx_to_quat_wxyz(eul[:, 0], eul[:, 1], eul[:, 2])
+    np.testing.assert_allclose(frames.quat_wxyz_to_euler_zyx(q), eul, atol=1e-10)
+
+
+def test_euler_vectorised_over_leading_axes():
+    r = frames.euler_zyx_to_rot(np.zeros((2, 5)), 0.1, np.linspace(0, 1, 5))
+    assert r.shape == (2, 5, 3, 3)
+    assert frames.rot_to_euler_zyx(r).shape == (2, 5, 3)
+    assert frames.rot_to_quat_wxyz(r).shape == (2, 5, 4)
+
+
+def test_tilt_and_yaw():
+    r = frames.euler_zyx_to_rot(np.radians(30.0), 0.0, 1.2)
+    assert np.isclose(frames.tilt_rad(r), np.radians(30.0))
+    assert np.isclose(frames.yaw_rad(r), 1.2)
+    r = frames.euler_zyx_to_rot(np.radians(20.0), np.radians(-25.0), -2.0)
+    b3 = r[:, 2]
+    assert np.isclose(frames.tilt_rad(r), np.arccos(b3 @ [0, 0, 1]))
+    upside_down = frames.euler_zyx_to_rot(np.pi, 0.0, 0.0)
+    assert np.isclose(frames.tilt_rad(upside_down), np.pi)
+    assert np.isclose(frames.wrap_pi(3 * np.pi / 2), -np.pi / 2)
+
+
+def test_so3_hat_vee_exp_orthonormalize():
+    rng = np.random.default_rng(2)
+    w = rng.normal(size=(50, 3))
+    v = rng.normal(size=(50, 3))
+    h = so3.hat_np(w)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", h, v), np.cross(w, v), atol=1e-12)
+    np.testing.assert_allclose(so3.vee_np(h), w)
+    np.testing.assert_allclose(so3.exp_so3_np(w), Rotation.from_rotvec(w).as_matrix(), atol=1e-12)
+    tiny = np.array([[1e-9, -2e-9, 3e-9]])
+    np.testing.assert_allclose(so3.exp_so3_np(tiny), Rotation.from_rotvec(tiny).as_matrix(), atol=1e-15)
+    noisy = Rotation.from_rotvec(w).as_matrix() + 1e-3 * rng.normal(size=(50, 3, 3))
+    for m in (so3.orthonormalize_np(noisy),
+              np.array([np.reshape(so3.orthonormalize(tuple(x.ravel())), (3, 3)) for x in noisy])):
+        np.testing.assert_allclose(np.einsum("nji,njk->nik", m, m), np.broadcast_to(np.eye(3), m.shape), atol=1e-12)
+        np.testing.assert_allclose(np.linalg.det(m), 1.0, atol=1e-12)
