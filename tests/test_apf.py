@@ -71,7 +71,7 @@ def test_coincident_vehicles_separate_without_nan():
     np.testing.assert_allclose(u, [[10.0, 0, 0]])
 
 
-def test_one_vehicle_call_equals_batch_row_and_uses_every_sensed_body(monkeypatch):
+def test_one_vehicle_call_equals_batch_row_and_uses_every_sensed_body():
     rng = np.random.default_rng(3)
     n = 60
     p = rng.uniform(-8, 8, (n, 3))
@@ -90,15 +90,20 @@ def test_one_vehicle_call_equals_batch_row_and_uses_every_sensed_body(monkeypatc
         if j != i and d < 4.0:
             expect += 5.0 * psi(d / 4.0, KAPPA) * (p[i] - p[j]) / d
     np.testing.assert_allclose(batch[i], expect, atol=1e-12)
-    # Unknown (NaN) bodies are ignored; chunking does not change the result.
+    # Unknown (NaN) bodies are ignored.
     q = p.copy()
     q[20:] = np.nan
     np.testing.assert_allclose(
         vehicle_repulsion(p[:20], q, *args, self_index=np.arange(20)),
         vehicle_repulsion(p[:20], p[:20], *args, self_index=np.arange(20)),
     )
-    monkeypatch.setattr(apf, "_PAIR_CHUNK", 7)
-    np.testing.assert_allclose(vehicle_repulsion(p, p, *args, self_index=np.arange(n)), batch, atol=1e-12)
+
+
+@pytest.mark.parametrize("kappa", [-4.0, 0.0, 1e-13, 0.5, 3.0, 40.0])
+def test_compiled_profile_equals_numpy_profile(kappa):
+    """The pair loop's scalar psi is the same function as the public psi."""
+    d = np.linspace(-0.5, 1.5, 201)
+    np.testing.assert_allclose([apf._psi_scalar(x, kappa) for x in d], psi(d, kappa), atol=1e-14)
 
 
 def test_obstacle_push_from_surface():
