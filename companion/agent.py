@@ -37,6 +37,7 @@ class Phase(IntEnum):
 
 
 FORMATION_PHASES = (Phase.ASSEMBLE, Phase.TRANSIT, Phase.HOVER)
+IN_FORMATION = np.isin(np.arange(len(Phase)), [int(p) for p in FORMATION_PHASES])  # lookup by phase value
 
 
 @dataclass
@@ -154,9 +155,15 @@ class Agent:
         known = np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(vel), axis=1)
         # A neighbour takes part in consensus once it is flying in formation; until
         # then its (unknown or tumbling) state would only disturb its followers.
-        in_formation = known & np.isin(phase, [int(p) for p in FORMATION_PHASES])
+        in_formation = known & IN_FORMATION[phase]
         weights = m.weights * in_formation[None, :]
-        u1 = consensus_accel(pos, vel, h_pos, h_vel, h_acc, weights, cfg.consensus, rows=ids)
+        # Saturate every vehicle's slot error at formation_error_max_m by sliding
+        # its reference towards it; inside that radius this is eq. 27 exactly.
+        err = np.nan_to_num(pos - h_pos)
+        norm = np.linalg.norm(err, axis=1, keepdims=True)
+        excess = np.maximum(0.0, 1.0 - cfg.formation_error_max_m / np.maximum(norm, 1e-12))
+        h_sat = h_pos + excess * err
+        u1 = consensus_accel(pos, vel, h_sat, h_vel, h_acc, weights, cfg.consensus, rows=ids)
 
         # Repulsion from every airborne vehicle heard within the sensing radius
         # (stabilising ones included), whatever the consensus topology.
@@ -192,7 +199,7 @@ class Agent:
         stab = phase == Phase.STABILISE
         sp.vel_ned_mps[stab] = 0.0  # brake and level; yaw NaN holds the current heading
 
-        rows = np.flatnonzero(np.isin(phase, [int(p) for p in FORMATION_PHASES]))
+        rows = np.flatnonzero(IN_FORMATION[phase])
         if len(rows):
             acc, h_pos, h_vel = self._formation_accel(t_s, rows, own, swarm)
             sp.acc_ned_mps2[rows] = acc

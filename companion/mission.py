@@ -95,6 +95,10 @@ class MissionConfig:
     topology: TopologyConfig = TopologyConfig()
     consensus: ConsensusGains = ConsensusGains()
     apf: ApfConfig = ApfConfig()
+    formation_error_max_m: float = Field(8.0, gt=0)
+    """Slot-position error at which the consensus law saturates (docs/formation.md):
+    far from its slot a vehicle then cruises at |k2_pos| * this / |k2_vel| m/s
+    instead of accelerating without bound."""
     consensus_accel_max_mps2: float = Field(3.0, gt=0)
     total_accel_max_mps2: float = Field(8.0, gt=0)
     phases: PhaseConfig = PhaseConfig()

@@ -1,0 +1,78 @@
+"""`make bench`: measure and write JSON figures under bench/results/.
+
+- physics.json: vehicle-steps/s at 1 kHz for N = 40, 400, 4000 (geometric and PID);
+- paper_40.json: wall time, real-time factor and CPU of the headless paper_40 run;
+- sitl.json: the MAVLink SITL alone at N = 40, 100, 250 (when the SITL is installed).
+"""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import resource
+import sys
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def _machine() -> dict:
+    return {"python": sys.version.split()[0], "platform": platform.platform(), "cpus": os.cpu_count()}
+
+
+def _write(name: str, data: dict) -> Path:
+    RESULTS.mkdir(parents=True, exist_ok=True)
+    data = {"measured_at": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "machine": _machine(), **data}
+    path = RESULTS / f"{name}.json"
+    path.write_text(json.dumps(data, indent=2))
+    print(f"wrote {path}")
+    return path
+
+
+def bench_paper_40() -> dict:
+    from sim_bridge.headless import run_scenario
+    from sim_bridge.simulate import load_scenario
+
+    cfg = load_scenario(Path(__file__).resolve().parents[1] / "configs" / "paper_40.yaml")
+    run_scenario(load_scenario_small(cfg), progress=False)  # compile the kernels outside the timing
+    cpu0 = resource.getrusage(resource.RUSAGE_SELF)
+    t0 = time.perf_counter()
+    res = run_scenario(cfg, progress=False)
+    wall = time.perf_counter() - t0
+    cpu1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu = (cpu1.ru_utime - cpu0.ru_utime) + (cpu1.ru_stime - cpu0.ru_stime)
+    return {
+        "wall_s": wall,
+        "cpu_s": cpu,
+        "sim_s": res.sim_s,
+        "real_time_factor": res.sim_s / wall,
+        "vehicle_steps": res.vehicle_steps,
+        "vehicle_steps_per_s": res.vehicle_steps / wall,
+        "mission_completion_s": res.t_complete_s,
+    }
+
+
+def load_scenario_small(cfg):
+    import dataclasses
+
+    return dataclasses.replace(cfg, duration_s=2.0)
+
+
+def main() -> int:
+    from bench.bench_physics import run as run_physics
+
+    phys = run_physics()
+    _write("physics", phys)
+    _write("paper_40", bench_paper_40())
+    try:
+        from sim_bridge.sitl.bench import run as run_sitl
+    except ImportError:
+        print("SITL not installed: skipping sitl.json")
+    else:
+        _write("sitl", run_sitl())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,91 @@
+"""Scenario config: everything `swarmdrop simulate` needs, validated at load."""
+from __future__ import annotations
+
+from pydantic import ConfigDict, Field, model_validator
+from pydantic.dataclasses import dataclass
+
+from companion.mission import MissionConfig
+from companion.params import InnerLoopConfig, VehicleParams
+from sim_bridge.carrier import CarrierConfig
+from sim_bridge.physics import WindConfig
+
+STRICT = ConfigDict(extra="forbid", frozen=True)
+
+
+@dataclass(config=STRICT)
+class PhysicsConfig:
+    rate_hz: float = Field(1000.0, ge=500.0)
+    """Physics (and inner-loop controller) rate; >= 500 Hz."""
+    wind: WindConfig = WindConfig()
+    ground_z_m: float | None = 0.0
+    """NED z of the ground plane (0 = take-off altitude); None disables ground contact."""
+
+
+@dataclass(config=STRICT)
+class AgentRateConfig:
+    rate_hz: float = Field(50.0, gt=0)
+
+
+@dataclass(config=STRICT)
+class SafetyConfig:
+    separation_m: float = Field(1.0, gt=0)
+    """Pairs closer than this count as separation violations."""
+    obstacle_margin_m: float = Field(1.0, ge=0)
+
+
+@dataclass(config=STRICT)
+class OutputConfig:
+    log_rate_hz: float = Field(50.0, gt=0)
+    figures: bool = True
+    snapshot_times_s: tuple[float, ...] = (30.0, 50.0, 70.0, 90.0, 110.0, 130.0, 150.0, 170.0)
+    attitude_vehicles: tuple[int, ...] = (1, 15, 27, 40)
+    """1-based vehicle numbers for the attitude-recovery figure (paper Fig. 6)."""
+    avoidance_vehicles: tuple[int, int] = (8, 17)
+    """1-based inclusive range of vehicles for the avoidance figure (paper Fig. 9)."""
+
+
+@dataclass(config=STRICT)
+class LaunchStudyConfig:
+    """Geometric vs PID on single launches (paper Fig. 2 vs 3)."""
+
+    enabled: bool = True
+    speed_mps: float = Field(5.0, ge=0)
+    roll_deg: tuple[float, ...] = (90.0, 179.0)
+    duration_s: float = Field(6.0, gt=0)
+    settle_tilt_deg: float = Field(5.0, gt=0)
+    settle_speed_mps: float = Field(0.2, gt=0)
+
+
+@dataclass(config=STRICT)
+class ScenarioConfig:
+    name: str = "scenario"
+    seed: int = 0
+    duration_s: float = Field(300.0, gt=0)
+    """Hard stop for the run, s of simulated time."""
+    completion_tol_m: float = Field(0.05, gt=0)
+    """The mission is complete when every vehicle hovers within this of its slot."""
+    completion_hold_s: float = Field(5.0, ge=0)
+    """Keep simulating this long after completion (station-keeping evidence)."""
+    vehicle: VehicleParams = VehicleParams()
+    inner_loop: InnerLoopConfig = InnerLoopConfig()
+    physics: PhysicsConfig = PhysicsConfig()
+    agent: AgentRateConfig = AgentRateConfig()
+    carrier: CarrierConfig = CarrierConfig()
+    mission: MissionConfig = MissionConfig()
+    safety: SafetyConfig = SafetyConfig()
+    output: OutputConfig = OutputConfig()
+    launch_study: LaunchStudyConfig = LaunchStudyConfig()
+
+    @model_validator(mode="after")
+    def _rates_divide(self):
+        ratio = self.physics.rate_hz / self.agent.rate_hz
+        if abs(ratio - round(ratio)) > 1e-9 or ratio < 1:
+            raise ValueError(
+                f"physics.rate_hz ({self.physics.rate_hz}) must be a whole multiple of agent.rate_hz ({self.agent.rate_hz})"
+            )
+        log_ratio = self.agent.rate_hz / self.output.log_rate_hz
+        if abs(log_ratio - round(log_ratio)) > 1e-9 or log_ratio < 1:
+            raise ValueError(
+                f"agent.rate_hz ({self.agent.rate_hz}) must be a whole multiple of output.log_rate_hz ({self.output.log_rate_hz})"
+            )
+        return self

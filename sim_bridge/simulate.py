@@ -1,0 +1,74 @@
+"""`swarmdrop simulate`: run a scenario headless and write its run directory."""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+from companion.config import load_yaml
+from sim_bridge.figures import write_figures
+from sim_bridge.headless import run_scenario, save_log
+from sim_bridge.launch_study import run_launch_study
+from sim_bridge.metrics import compute_metrics
+from sim_bridge.scenario import ScenarioConfig
+
+
+def load_scenario(path: str | Path, seed: int | None = None) -> ScenarioConfig:
+    """Load and validate a scenario YAML; seed overrides the file's seed.
+
+    Raises:
+        ConfigError: unknown keys or bad values, naming their dotted path.
+    """
+    cfg = load_yaml(ScenarioConfig, path)
+    return cfg if seed is None else dataclasses.replace(cfg, seed=seed)
+
+
+def simulate(cfg: ScenarioConfig, out_dir: Path, progress: bool = True, figures: bool | None = None) -> dict:
+    """Fly the launch study and the scenario, write the run directory, return metrics.
+
+    The run directory holds metrics.json, telemetry.npz (every state of every
+    vehicle at the log rate), config.json (the resolved config) and the figures.
+    """
+    out_dir.mkdir(parents=True, exist_ok=True)
+    study, traces = run_launch_study(cfg) if cfg.launch_study.enabled else (None, None)
+    result = run_scenario(cfg, progress=progress)
+    metrics = compute_metrics(result, study)
+    (out_dir / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
+    save_log(result, out_dir)
+    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    if cfg.output.figures if figures is None else figures:
+        write_figures(result, traces, out_dir)
+    return metrics
+
+
+def summary_lines(metrics: dict, out_dir: Path) -> list[str]:
+    s, f, sep = metrics["stabilisation"], metrics["formation_deviation"], metrics["separation"]
+    perf = metrics["performance"]
+    fmt = lambda x, u="", p=3: "n/a" if x is None else f"{x:.{p}f}{u}"  # noqa: E731
+    lines = [
+        f"run directory: {out_dir}",
+        f"  vehicles stabilised:   {sum(r['stabilised'] for r in s['per_vehicle'])}/{metrics['n_vehicles']}"
+        f" (max settle {fmt(s['max_settle_time_s'], ' s', 2)}, max drift {fmt(s['max_drift_m'], ' m', 2)})",
+        f"  all assembled at:      {fmt(metrics['assembly']['all_assembled_s'], ' s', 1)};"
+        f" transit start {fmt(metrics['assembly']['transit_start_s'], ' s', 1)}",
+        f"  mission complete at:   {fmt(metrics['mission']['completion_time_s'], ' s', 1)}",
+        f"  final max deviation:   {fmt(f['final_max_m'], ' m', 4)}",
+        f"  min separation:        {fmt(sep['min_pair_distance_m'], ' m')} (UAVs {sep['min_pair_vehicles']},"
+        f" t = {fmt(sep['min_pair_time_s'], ' s', 1)}); pairs < {sep['safety_distance_m']} m: {sep['pairs_below_safety_distance']}",
+        f"  min obstacle clearance:{fmt(metrics['obstacles']['min_clearance_m'], ' m')}",
+        f"  speed:                 {fmt(perf['real_time_factor'], 'x real time', 1)},"
+        f" {fmt((perf['vehicle_steps_per_s'] or 0) / 1e6, 'M vehicle-steps/s', 2)}",
+    ]
+    ls = metrics.get("launch_study")
+    if ls:
+        for case, m in ls.items():
+            g, p, r = m["geometric"], m["pid"], m["pid_over_geometric"]
+            lines.append(
+                f"  launch {case.replace('_', ' ')} deg: geometric settles {fmt(g['settling_time_s'], ' s', 2)},"
+                f" drift {fmt(g['drift_m'], ' m', 2)}; PID {fmt(p['settling_time_s'], ' s', 2)},"
+                f" drift {fmt(p['drift_m'], ' m', 2)} (PID/geometric: settle {fmt(r['settling_time_s'], 'x', 2)},"
+                f" drift {fmt(r['drift_m'], 'x', 2)})"
+            )
+    for name, ok in metrics["checks"].items():
+        lines.append(f"  [{'PASS' if ok else 'FAIL'}] {name}")
+    return lines
