@@ -61,10 +61,16 @@ class GeometricGains:
 @dataclass(config=STRICT)
 class PIDGains:
     """Integral pole placement of the PID baseline; the P and D terms are derived
-    from GeometricGains so that both controllers share their small-angle poles."""
+    from GeometricGains so that both controllers share their small-angle poles.
+
+    The velocity integrator is off by default: through the finite-bandwidth
+    attitude loop it moves the horizontal poles by up to 15 % (docs/controllers.md),
+    and it pulls a launched vehicle back towards its release point, so the
+    geometric-vs-PID comparison would no longer isolate large-angle behaviour.
+    """
 
     att_integral_pole_per_s: float = Field(2.0, ge=0)
-    vel_integral_pole_per_s: float = Field(0.5, ge=0)
+    vel_integral_pole_per_s: float = Field(0.0, ge=0)
 
 
 @dataclass(config=STRICT)

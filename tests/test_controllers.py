@@ -154,13 +154,13 @@ def test_small_angle_poles_position_hold_full_cascade():
     eg = np.linalg.eigvals(_closed_loop_jacobian("geometric", sp, VP_LIN, GAINS_LIN, None))
     assert np.all(eg.real < -0.5)  # the geometric closed loop is stable about hover
     # attitude integrators only: geometric poles exact, extra = -p_att (x3) and idle xi_v at 0 (x3)
-    pid = PIDGains(att_integral_pole_per_s=2.0, vel_integral_pole_per_s=0.0)
+    pid = PIDGains()  # the defaults: attitude integrators on, velocity integrator off
     ep = np.linalg.eigvals(_closed_loop_jacobian("pid", sp, VP_LIN, GAINS_LIN, pid))
     rest = _match(eg, ep, tol=1e-5)
     np.testing.assert_allclose(np.sort(rest.real), [-2.0, -2.0, -2.0, 0, 0, 0], atol=1e-5)
-    # default velocity integrator: exact only with an ideal attitude loop (test_pid_gain_algebra);
+    # a velocity integrator: exact only with an ideal attitude loop (test_pid_gain_algebra);
     # through the finite-bandwidth attitude loop the outer poles shift (see docs/controllers.md)
-    pid = PIDGains()
+    pid = PIDGains(att_integral_pole_per_s=2.0, vel_integral_pole_per_s=0.5)
     ep = np.linalg.eigvals(_closed_loop_jacobian("pid", sp, VP_LIN, GAINS_LIN, pid))
     assert np.all(ep.real < 0)
     # vertical (s^2 + kv s + kx) and yaw (s^2 + kOm s + kR) loops have no attitude dynamics in
