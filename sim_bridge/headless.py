@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from numba import njit
 from scipy.spatial.distance import pdist
 
 from companion import frames
@@ -39,15 +40,15 @@ class SafetyTracker:
     def update(self, t_s: float, ids: np.ndarray, pos: np.ndarray, mission: Mission) -> None:
         """ids: (k,) vehicle ids of the airborne vehicles, pos: (k, 3) their positions."""
         if len(ids) >= 2:
-            d = pdist(pos)
-            k = int(np.argmin(d))
-            if d[k] < self.min_pair_dist_m:
-                i, j = _pair_from_condensed(k, len(ids))
-                self.min_pair_dist_m, self.min_pair_time_s = float(d[k]), t_s
+            d_min, i, j, n_close = _closest_pair(pos, self.separation_m)
+            if d_min < self.min_pair_dist_m:
+                self.min_pair_dist_m, self.min_pair_time_s = d_min, t_s
                 self.min_pair = (int(ids[i]), int(ids[j]))
-            for k in np.flatnonzero(d < self.separation_m):
-                i, j = _pair_from_condensed(int(k), len(ids))
-                self.violating_pairs.add((int(ids[i]), int(ids[j])))
+            if n_close:  # rare: list the offending pairs
+                d = pdist(pos)
+                for k in np.flatnonzero(d < self.separation_m):
+                    a, b = _pair_from_condensed(int(k), len(ids))
+                    self.violating_pairs.add((int(ids[a]), int(ids[b])))
         if len(ids) and len(mission.obstacle_radii_m):
             gap = (
                 np.linalg.norm(pos[:, None, :] - mission.obstacle_centres_ned_m[None], axis=2)
@@ -57,6 +58,21 @@ class SafetyTracker:
             if gap[k] < self.min_clearance_m:
                 self.min_clearance_m, self.min_clearance_time_s = float(gap[k]), t_s
                 self.min_clearance_vehicle = int(ids[k[0]])
+
+
+@njit(cache=True)
+def _closest_pair(pos: np.ndarray, threshold_m: float) -> tuple[float, int, int, int]:
+    """Smallest pairwise distance of (k, 3) points, its pair, and how many pairs are
+    closer than threshold_m (compiled: this runs every agent tick)."""
+    best, bi, bj, close = np.inf, 0, 1, 0
+    for i in range(pos.shape[0]):
+        for j in range(i + 1, pos.shape[0]):
+            d = np.sqrt((pos[i, 0] - pos[j, 0]) ** 2 + (pos[i, 1] - pos[j, 1]) ** 2 + (pos[i, 2] - pos[j, 2]) ** 2)
+            if d < best:
+                best, bi, bj = d, i, j
+            if d < threshold_m:
+                close += 1
+    return best, bi, bj, close
 
 
 def _pair_from_condensed(k: int, n: int) -> tuple[int, int]:

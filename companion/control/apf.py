@@ -228,12 +228,30 @@ def obstacle_repulsion(
     _check_positive(influence_m=influence_m)
     if not (np.isfinite(gain_mps2) and gain_mps2 >= 0):
         raise ValueError(f"gain_mps2 must be finite and >= 0, got {gain_mps2!r}")
-    diff = p[:, None, :] - o[None, :, :]  # (N, K, 3), K is small
-    dist_c = np.linalg.norm(diff, axis=-1)
-    tiny = dist_c < 1e-9
-    unit = np.where(tiny[..., None], TIE_BREAK_DIR_NED, diff / np.where(tiny, 1.0, dist_c)[..., None])
-    mag = gain_mps2 * psi((dist_c - r[None, :]) / influence_m, kappa)
-    return np.einsum("nk,nkc->nc", mag, unit)
+    if not np.isfinite(kappa):
+        raise ValueError(f"kappa must be finite, got {kappa!r}")
+    return _obstacle_loop(p, o, r, float(gain_mps2), float(influence_m), float(kappa))
+
+
+@njit(cache=True)
+def _obstacle_loop(p, o, r, gain, infl, kappa):
+    """Compiled N x K loop of obstacle_repulsion: (N, 3) accelerations."""
+    out = np.zeros((p.shape[0], 3))
+    for i in range(p.shape[0]):
+        for k in range(o.shape[0]):
+            dx, dy, dz = p[i, 0] - o[k, 0], p[i, 1] - o[k, 1], p[i, 2] - o[k, 2]
+            dc = np.sqrt(dx * dx + dy * dy + dz * dz)
+            mag = gain * _psi_scalar((dc - r[k]) / infl, kappa)
+            if mag == 0.0:
+                continue
+            if dc < 1e-9:
+                ux, uy, uz = TIE_BREAK_DIR_NED[0], TIE_BREAK_DIR_NED[1], TIE_BREAK_DIR_NED[2]
+            else:
+                ux, uy, uz = dx / dc, dy / dc, dz / dc
+            out[i, 0] += mag * ux
+            out[i, 1] += mag * uy
+            out[i, 2] += mag * uz
+    return out
 
 
 def _clip_norm(u: np.ndarray, max_norm: float) -> np.ndarray:
