@@ -7,6 +7,7 @@ every Agent of the swarm builds identically from the same config.
 from __future__ import annotations
 
 from dataclasses import dataclass as plain_dataclass
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -137,6 +138,10 @@ class CentrePath:
     a_max_mps2: float
     dwell_s: float
 
+    @cached_property
+    def _leg_table(self) -> tuple:
+        return tuple(self._legs())
+
     def _legs(self):
         for k in range(len(self.waypoints_ned_m) - 1):
             a, b = self.waypoints_ned_m[k], self.waypoints_ned_m[k + 1]
@@ -146,10 +151,10 @@ class CentrePath:
             t_cruise = (dist - v * t_acc) / v if v > 0 else 0.0
             yield a, b, dist, v, t_acc, t_cruise
 
-    @property
+    @cached_property
     def duration_s(self) -> float:
         """Time from transit start to arrival at the last waypoint, s."""
-        return sum(2 * t_acc + t_cr + self.dwell_s for *_, t_acc, t_cr in self._legs())
+        return sum(2 * t_acc + t_cr + self.dwell_s for *_, t_acc, t_cr in self._leg_table)
 
     def at(self, tau_s: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """c(t), c'(t), c''(t) at tau_s seconds after transit start (tau < 0: at
@@ -158,7 +163,7 @@ class CentrePath:
         if tau_s <= 0 or len(self.waypoints_ned_m) == 1:
             return self.waypoints_ned_m[0].copy(), zero, zero.copy()
         t = tau_s
-        for a, b, dist, v, t_acc, t_cr in self._legs():
+        for a, b, dist, v, t_acc, t_cr in self._leg_table:
             leg_t = 2 * t_acc + t_cr
             if t < leg_t and dist > 0:
                 u = (b - a) / dist
