@@ -34,7 +34,7 @@ class VehicleParams:
     """c_tau_f in eq. 6: rotor reaction torque per newton of thrust."""
     rotor_speed_min_radps: float = Field(0.0, ge=0)
     rotor_speed_max_radps: float = Field(2500.0, gt=0)
-    motor_time_constant_s: float = Field(0.005, ge=0)
+    motor_time_constant_s: float = Field(0.072, ge=0)
     """First-order motor lag; 0 means instantaneous rotors."""
     drag_coeff_n_per_mps: float = Field(0.0, ge=0)
     """Linear translational drag, F = -c * (v - wind). Zero by default (do-nothing default)."""
@@ -51,8 +51,8 @@ class GeometricGains:
 
     kx_per_s2: float = Field(4.0, ge=0)
     kv_per_s: float = Field(4.0, ge=0)
-    kR_per_s2: float = Field(400.0, gt=0)
-    kOmega_per_s: float = Field(40.0, gt=0)
+    kR_per_s2: float = Field(200.0, gt=0)
+    kOmega_per_s: float = Field(28.0, gt=0)
     tilt_max_deg: float = Field(50.0, gt=0, le=89.0)
     acc_max_mps2: float = Field(12.0, gt=0)
     """Norm limit on the commanded acceleration before thrust/tilt saturation."""

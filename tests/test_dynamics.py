@@ -64,8 +64,9 @@ def test_rotor_saturation_limits_thrust():
 
 def test_motor_lag_exact_exponential():
     st = FleetState.zeros(1)
-    step_open_loop(st, np.full((1, 4), 2000.0), VP, 1e-3, n_steps=5)  # 5 ms = one time constant
-    np.testing.assert_allclose(st.rotor_speed_radps, 2000.0 * (1 - np.exp(-1.0)), rtol=1e-12)
+    n = round(VP.motor_time_constant_s / 1e-3)  # one time constant of 1 ms steps
+    step_open_loop(st, np.full((1, 4), 2000.0), VP, 1e-3, n_steps=n)
+    np.testing.assert_allclose(st.rotor_speed_radps, 2000.0 * (1 - np.exp(-n * 1e-3 / VP.motor_time_constant_s)), rtol=1e-12)
 
 
 def _spin_state(omega):
