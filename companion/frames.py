@@ -165,3 +165,19 @@ def yaw_rad(rot: np.ndarray) -> np.ndarray:
 def wrap_pi(angle_rad):
     """Wrap angles to [-pi, pi)."""
     return (np.asarray(angle_rad, float) + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def integrate_quat_body_rates(q_wxyz: np.ndarray, omega_body_radps: np.ndarray, dt_s: float) -> np.ndarray:
+    """Attitude after rotating at constant body rates for dt_s: q <- q * exp(omega dt).
+
+    Args:
+        q_wxyz: (N, 4) attitudes [w, x, y, z] (body FRD -> NED).
+        omega_body_radps: (N, 3) body rates, FRD, rad/s.
+        dt_s: time step, s.
+    Returns:
+        (N, 4) unit quaternions [w, x, y, z], w >= 0.
+    """
+    from companion.control.so3 import exp_so3_np  # so3 is pure math; import here to keep frames light
+
+    rot = quat_wxyz_to_rot(q_wxyz) @ exp_so3_np(np.asarray(omega_body_radps, float) * dt_s)
+    return rot_to_quat_wxyz(rot)

@@ -77,3 +77,14 @@ def test_so3_hat_vee_exp_orthonormalize():
               np.array([np.reshape(so3.orthonormalize(tuple(x.ravel())), (3, 3)) for x in noisy])):
         np.testing.assert_allclose(np.einsum("nji,njk->nik", m, m), np.broadcast_to(np.eye(3), m.shape), atol=1e-12)
         np.testing.assert_allclose(np.linalg.det(m), 1.0, atol=1e-12)
+
+
+def test_integrate_quat_body_rates_closed_form():
+    """Constant body rate about one axis turns the attitude by rate * dt about that body axis."""
+    q0 = frames.euler_zyx_to_quat_wxyz(np.radians(20.0), np.radians(-10.0), np.radians(30.0))[None]
+    q = q0.copy()
+    for _ in range(100):
+        q = frames.integrate_quat_body_rates(q, np.array([[0.0, 0.0, 0.5]]), 0.01)
+    expected = frames.quat_wxyz_to_rot(q0)[0] @ frames.euler_zyx_to_rot(0.0, 0.0, 0.5)
+    np.testing.assert_allclose(frames.quat_wxyz_to_rot(q)[0], expected, atol=1e-12)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)

@@ -1,0 +1,1 @@
+"""Multi-vehicle PX4-flavoured MAVLink 2 SITL (`swarmdrop sitl`). See docs/sitl.md."""

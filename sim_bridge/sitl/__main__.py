@@ -1,0 +1,5 @@
+import sys
+
+from sim_bridge.sitl.cli import main
+
+sys.exit(main())

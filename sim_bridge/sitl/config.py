@@ -1,0 +1,117 @@
+"""Configuration of `swarmdrop sitl` (validated, YAML-loadable)."""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Literal
+
+import yaml
+from pydantic import ConfigDict, Field
+from pydantic.dataclasses import dataclass
+
+from companion.config import ConfigError, validate
+from companion.params import InnerLoopConfig, VehicleParams
+from sim_bridge.carrier import CarrierConfig
+
+STRICT = ConfigDict(extra="forbid", frozen=True)
+
+
+@dataclass(config=STRICT)
+class EndpointConfig:
+    remote_host: str = "127.0.0.1"
+    remote_base_port: int = Field(14540, ge=1, le=65535)
+    """Vehicle k sends to remote_host:remote_base_port+k until someone talks to it."""
+    bind_host: str = "127.0.0.1"
+    local_base_port: int = Field(18570, ge=0, le=65535)
+    """Vehicle k listens on bind_host:local_base_port+k (0 = ephemeral ports)."""
+    gcs_enabled: bool = False
+    gcs_remote_port: int = Field(14550, ge=1, le=65535)
+    gcs_local_port: int = Field(0, ge=0, le=65535)
+    """Shared GCS link carrying every vehicle (0 = ephemeral local port)."""
+
+    def vehicle_remote_port(self, k: int) -> int:
+        """Default remote port of vehicle k: remote_base_port + k, stepping over the GCS
+        port (14550) so that vehicle 10 and beyond never talk into a ground station's socket."""
+        port = self.remote_base_port + k
+        if self.remote_base_port <= self.gcs_remote_port <= port:
+            port += 1
+        return port
+
+
+@dataclass(config=STRICT)
+class HomeConfig:
+    lat_deg: float = Field(47.397742, ge=-90, le=90)
+    lon_deg: float = Field(8.545594, ge=-180, le=180)
+    alt_amsl_m: float = 488.0
+
+
+@dataclass(config=STRICT)
+class StreamRates:
+    """Default telemetry rates, Hz (0 = off). HEARTBEAT runs on wall-clock time,
+    the others on simulation time (as PX4's streams run on PX4's clock)."""
+
+    heartbeat: float = Field(1.0, ge=0)
+    sys_status: float = Field(1.0, ge=0)
+    extended_sys_state: float = Field(1.0, ge=0)
+    local_position_ned: float = Field(10.0, ge=0)
+    attitude: float = Field(10.0, ge=0)
+    attitude_quaternion: float = Field(10.0, ge=0)
+    global_position_int: float = Field(5.0, ge=0)
+    gps_raw_int: float = Field(1.0, ge=0)
+    home_position: float = Field(1.0, ge=0)
+    system_time: float = Field(1.0, ge=0)
+    battery_status: float = Field(0.5, ge=0)
+
+
+@dataclass(config=STRICT)
+class TimeConfig:
+    speed: float = Field(1.0, gt=0, le=1000)
+    """Simulation seconds per wall second (free-running and lockstep-idle pacing)."""
+    lockstep: bool = False
+    tick_s: float = Field(0.01, gt=0, le=0.1)
+    """Outer step: setpoints are sampled, telemetry scheduled and lockstep gated per tick."""
+    autopilot_rate_hz: float = Field(50.0, gt=0)
+    """Rate of the mode/failsafe/landing logic (rounded to whole ticks)."""
+    physics_rate_hz: float = Field(500.0, ge=100)
+
+
+@dataclass(config=STRICT)
+class SpawnConfig:
+    launch: Literal["ground", "carrier"] = "ground"
+    grid_spacing_m: float = Field(2.0, gt=0)
+    """Ground spawn: vehicle k at a square grid position around the origin."""
+
+
+@dataclass(config=STRICT)
+class SitlConfig:
+    vehicles: int = Field(1, ge=1, le=250)
+    seed: int = 0
+    vehicle: VehicleParams = VehicleParams()
+    inner_loop: InnerLoopConfig = InnerLoopConfig()
+    ground_z_m: float = 0.0
+    endpoints: EndpointConfig = EndpointConfig()
+    home: HomeConfig = HomeConfig()
+    streams: StreamRates = StreamRates()
+    time: TimeConfig = TimeConfig()
+    spawn: SpawnConfig = SpawnConfig()
+    carrier: CarrierConfig = CarrierConfig()
+    params: dict[str, float] = Field(default_factory=dict)
+    """Parameter overrides applied to every vehicle at start (name -> value)."""
+    tlog_path: str | None = None
+
+
+def load_config(path: str | Path | None, **overrides) -> SitlConfig:
+    """YAML file (optional) + keyword overrides -> SitlConfig.
+
+    Raises:
+        ConfigError: missing or malformed file, unknown keys or bad values (named by dotted path).
+    """
+    data: dict = {}
+    if path is not None:
+        try:
+            data = yaml.safe_load(Path(path).read_text()) or {}
+        except FileNotFoundError:
+            raise ConfigError(f"{path}: no such config file") from None
+        except yaml.YAMLError as err:
+            raise ConfigError(f"{path}: not valid YAML: {err}") from None
+    data.update({k: v for k, v in overrides.items() if v is not None})
+    return validate(SitlConfig, data, str(path) if path is not None else "<sitl config>")

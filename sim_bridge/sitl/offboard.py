@@ -1,0 +1,150 @@
+"""Decoding of offboard setpoint messages into inner-loop setpoints, as PX4 does.
+
+Pure functions on plain numbers (no pymavlink, no sockets). Reference behaviour:
+PX4 MavlinkReceiver::handle_message_set_position_target_local_ned and
+handle_message_set_attitude_target (v1.14-v1.16):
+
+* SET_POSITION_TARGET_LOCAL_NED, frame LOCAL_NED (1): every ignore bit turns its
+  axis into NaN ("not commanded").
+* frame BODY_NED (8): position is never used; velocity (if no velocity ignore bit
+  is set) is rotated by the vehicle yaw, acceleration (if no acceleration ignore
+  bit is set) by the full attitude; an ignored axis inside a used group counts 0.
+* any other frame is rejected; FORCE_SET together with an acceleration is rejected;
+  a message without any position, velocity or acceleration is rejected.
+* yaw / yaw_rate are NaN when their ignore bit is set.
+* SET_ATTITUDE_TARGET: the quaternion (NED->FRD, w x y z) unless ATTITUDE_IGNORE;
+  otherwise body rates if at least one rate is not ignored. Thrust is 0 when
+  THROTTLE_IGNORE is set (PX4 leaves thrust_body zero).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+MAV_FRAME_LOCAL_NED = 1
+MAV_FRAME_BODY_NED = 8
+
+POS_IGNORE = (1, 2, 4)
+VEL_IGNORE = (8, 16, 32)
+ACC_IGNORE = (64, 128, 256)
+FORCE_SET = 512
+YAW_IGNORE = 1024
+YAW_RATE_IGNORE = 2048
+
+ATT_ROLL_RATE_IGNORE = 1
+ATT_PITCH_RATE_IGNORE = 2
+ATT_YAW_RATE_IGNORE = 4
+ATT_THRUST_BODY_SET = 32
+ATT_THROTTLE_IGNORE = 64
+ATT_ATTITUDE_IGNORE = 128
+
+
+@dataclass
+class TrajectorySetpoint:
+    """One vehicle's position-family setpoint (FleetSetpoint row semantics)."""
+
+    pos_ned_m: np.ndarray
+    vel_ned_mps: np.ndarray
+    acc_ned_mps2: np.ndarray
+    yaw_rad: float
+    yaw_rate_radps: float
+
+
+@dataclass
+class AttitudeSetpoint:
+    """One vehicle's attitude or body-rate setpoint.
+
+    att_q_wxyz is None for a body-rate setpoint: the SITL then integrates the
+    rates into a moving attitude target for the geometric controller.
+    """
+
+    att_q_wxyz: np.ndarray | None
+    thrust_norm: float
+    body_rate_radps: np.ndarray
+
+
+@dataclass(frozen=True)
+class Rejected:
+    reason: str
+
+
+def _axes(values, mask: int, bits, fill: float) -> np.ndarray:
+    return np.array([fill if mask & b else float(v) for v, b in zip(values, bits)])
+
+
+def _yaw_of(rot_body_to_ned: np.ndarray) -> float:
+    return math.atan2(rot_body_to_ned[1, 0], rot_body_to_ned[0, 0])
+
+
+def decode_position_target(
+    type_mask: int,
+    frame: int,
+    pos: tuple[float, float, float],
+    vel: tuple[float, float, float],
+    acc: tuple[float, float, float],
+    yaw: float,
+    yaw_rate: float,
+    rot_body_to_ned: np.ndarray,
+) -> TrajectorySetpoint | Rejected:
+    """SET_POSITION_TARGET_LOCAL_NED fields -> setpoint, or why PX4 would drop it."""
+    nan = math.nan
+    if frame == MAV_FRAME_LOCAL_NED:
+        p = _axes(pos, type_mask, POS_IGNORE, nan)
+        v = _axes(vel, type_mask, VEL_IGNORE, nan)
+        a = _axes(acc, type_mask, ACC_IGNORE, nan)
+    elif frame == MAV_FRAME_BODY_NED:
+        p = np.full(3, nan)
+        if type_mask & sum(VEL_IGNORE):
+            v = np.full(3, nan)
+        else:
+            vb = _axes(vel, type_mask, VEL_IGNORE, 0.0)
+            c, s = math.cos(_yaw_of(rot_body_to_ned)), math.sin(_yaw_of(rot_body_to_ned))
+            v = np.array([c * vb[0] - s * vb[1], s * vb[0] + c * vb[1], vb[2]])
+        if type_mask & sum(ACC_IGNORE):
+            a = np.full(3, nan)
+        else:
+            a = rot_body_to_ned @ _axes(acc, type_mask, ACC_IGNORE, 0.0)
+    else:
+        return Rejected(f"SET_POSITION_TARGET_LOCAL_NED coordinate frame {frame} unsupported")
+    has_pos = bool(np.isfinite(p).any())
+    has_vel = bool(np.isfinite(v).any())
+    has_acc = bool(np.isfinite(a).any())
+    if has_acc and type_mask & FORCE_SET:
+        return Rejected("SET_POSITION_TARGET_LOCAL_NED force not supported")
+    if not (has_pos or has_vel or has_acc):
+        return Rejected("SET_POSITION_TARGET_LOCAL_NED invalid")
+    return TrajectorySetpoint(
+        pos_ned_m=p, vel_ned_mps=v, acc_ned_mps2=a,
+        yaw_rad=nan if type_mask & YAW_IGNORE else float(yaw),
+        yaw_rate_radps=nan if type_mask & YAW_RATE_IGNORE else float(yaw_rate),
+    )
+
+
+def decode_attitude_target(
+    type_mask: int,
+    q_wxyz: tuple[float, float, float, float],
+    body_rates_radps: tuple[float, float, float],
+    thrust: float,
+) -> AttitudeSetpoint | Rejected:
+    """SET_ATTITUDE_TARGET fields -> setpoint, or why it is dropped."""
+    if type_mask & ATT_THROTTLE_IGNORE or not math.isfinite(thrust):
+        thrust_norm = 0.0
+    else:
+        thrust_norm = min(max(float(thrust), 0.0), 1.0)
+    rate_bits = (ATT_ROLL_RATE_IGNORE, ATT_PITCH_RATE_IGNORE, ATT_YAW_RATE_IGNORE)
+    rates = _axes(body_rates_radps, type_mask, rate_bits, 0.0)
+    rates[~np.isfinite(rates)] = 0.0
+    if not type_mask & ATT_ATTITUDE_IGNORE:
+        q = np.array(q_wxyz, dtype=float)
+        norm = float(np.linalg.norm(q))
+        if not np.isfinite(q).all() or norm < 0.5:
+            return Rejected("SET_ATTITUDE_TARGET invalid quaternion")
+        q = q / norm
+        if q[0] < 0:
+            q = -q
+        return AttitudeSetpoint(att_q_wxyz=q, thrust_norm=thrust_norm, body_rate_radps=rates)
+    if (type_mask & 7) != 7:
+        return AttitudeSetpoint(att_q_wxyz=None, thrust_norm=thrust_norm, body_rate_radps=rates)
+    return Rejected("SET_ATTITUDE_TARGET ignores attitude and all rates")

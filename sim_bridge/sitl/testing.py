@@ -1,0 +1,73 @@
+"""Helpers for tests that talk to the SITL over 127.0.0.1 (free ports, waiting clients)."""
+from __future__ import annotations
+
+import os
+import random
+import socket
+import time
+from typing import Callable
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
+
+from sim_bridge.sitl.config import EndpointConfig  # noqa: E402
+
+
+def free_udp_base_port(count: int, lo: int = 20000, hi: int = 60000, attempts: int = 50) -> int:
+    """A base port b such that b .. b+count-1 are all free UDP ports on 127.0.0.1."""
+    rnd = random.Random(os.getpid() ^ time.monotonic_ns())
+    for _ in range(attempts):
+        base = rnd.randrange(lo, hi - count)
+        socks = []
+        try:
+            for p in range(base, base + count):
+                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+                socks.append(s)
+                s.bind(("127.0.0.1", p))
+            return base
+        except OSError:
+            continue
+        finally:
+            for s in socks:
+                s.close()
+    raise RuntimeError(f"no {count} consecutive free UDP ports found")
+
+
+def local_endpoints(n_remote: int) -> EndpointConfig:
+    """SITL endpoints for a test: ephemeral local ports, remotes on free 127.0.0.1 ports."""
+    return EndpointConfig(remote_host="127.0.0.1", remote_base_port=free_udp_base_port(n_remote),
+                          bind_host="127.0.0.1", local_base_port=0)
+
+
+class MavClient:
+    """A pymavlink (mavutil) ground station listening where vehicle k sends."""
+
+    def __init__(self, port: int, source_system: int = 255, source_component: int = 190):
+        self.conn = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=source_system,
+                                               source_component=source_component)
+        self.mav = self.conn.mav
+
+    def wait(self, types: str | list[str], pred: Callable = lambda m: True, timeout_s: float = 5.0):
+        """First message of the given type(s) satisfying pred within the deadline, or None."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                return None
+            msg = self.conn.recv_match(type=types, blocking=True, timeout=min(left, 0.2))
+            if msg is not None and pred(msg):
+                return msg
+
+    def drain(self) -> None:
+        for _ in range(100000):
+            if self.conn.recv_match(blocking=False) is None:
+                return
+
+    def command(self, target: int, command: int, *params: float, target_component: int = 1,
+                timeout_s: float = 3.0):
+        p = list(params) + [0.0] * (7 - len(params))
+        self.mav.command_long_send(target, target_component, command, 0, *p)
+        return self.wait("COMMAND_ACK", lambda m: m.command == command, timeout_s)
+
+    def close(self) -> None:
+        self.conn.close()

@@ -1,0 +1,259 @@
+"""pymavlink/mavutil against a 4-vehicle SITL: heartbeat/modes, commands, params,
+offboard loss, bad input. Each test flies its own vehicle so they do not interact."""
+from __future__ import annotations
+
+import math
+import os
+import socket
+import struct
+import time
+
+import pytest
+
+os.environ.setdefault("MAVLINK20", "1")
+from pymavlink import mavutil  # noqa: E402
+from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
+
+from sim_bridge.sitl.autopilot import Mode  # noqa: E402
+from sim_bridge.sitl.config import SitlConfig  # noqa: E402
+from sim_bridge.sitl.params_table import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, encode_param_value  # noqa: E402
+from sim_bridge.sitl.server import BackgroundSitl  # noqa: E402
+from sim_bridge.sitl.testing import MavClient, local_endpoints  # noqa: E402
+
+N = 4
+NAN = math.nan
+POS_ONLY_MASK = 0x9F8 | 0x400  # position, yaw ignored
+
+
+@pytest.fixture(scope="module")
+def sitl():
+    cfg = SitlConfig(vehicles=N, endpoints=local_endpoints(N))
+    bg = BackgroundSitl(cfg)
+    server = bg.start()
+    yield server
+    bg.stop()
+
+
+def client_for(server, k: int) -> MavClient:
+    c = MavClient(server.cfg.endpoints.remote_base_port + k)
+    assert c.wait("HEARTBEAT", lambda m: m.get_srcSystem() == k + 1, 5.0) is not None
+    return c
+
+
+def test_heartbeat_and_mode_decoding(sitl):
+    c = client_for(sitl, 3)
+    try:
+        hb = c.wait("HEARTBEAT", timeout_s=3)
+        assert (hb.get_srcSystem(), hb.get_srcComponent()) == (4, 1)
+        assert hb.type == mavlink.MAV_TYPE_QUADROTOR and hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
+        assert hb.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+        assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
+        assert hb.custom_mode == Mode.HOLD == 50593792
+        assert mavutil.mode_string_v10(hb) == "LOITER"
+        assert c.conn.mavlink20()
+        for main, sub, name in ((3, 0, "POSCTL"), (4, 6, "LAND"), (4, 3, "LOITER")):
+            ack = c.command(4, 176, 1, main, sub)
+            assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+            hb = c.wait("HEARTBEAT", lambda m: m.custom_mode == (main << 16 | sub << 24), 3)
+            assert mavutil.mode_string_v10(hb) == name
+        # streams present at default rates
+        for t in ("SYS_STATUS", "EXTENDED_SYS_STATE", "LOCAL_POSITION_NED", "ATTITUDE", "ATTITUDE_QUATERNION",
+                  "GLOBAL_POSITION_INT", "GPS_RAW_INT", "HOME_POSITION", "SYSTEM_TIME"):
+            assert c.wait(t, timeout_s=3) is not None, t
+        ss = c.wait("SYS_STATUS", timeout_s=3)
+        assert ss.onboard_control_sensors_health & mavlink.MAV_SYS_STATUS_PREARM_CHECK
+        gp = c.wait("GLOBAL_POSITION_INT", timeout_s=3)
+        assert abs(gp.lat / 1e7 - sitl.cfg.home.lat_deg) < 1e-3 and abs(gp.alt / 1e3 - sitl.cfg.home.alt_amsl_m) < 1
+    finally:
+        c.close()
+
+
+def test_arm_commands_acks_and_protocol(sitl):
+    c = client_for(sitl, 0)
+    try:
+        ack = c.command(1, 400, 1, target_component=0)  # mavutil style: compid 0
+        assert ack.result == mavlink.MAV_RESULT_ACCEPTED
+        assert (ack.get_srcSystem(), ack.get_srcComponent()) == (1, 1)
+        assert (ack.target_system, ack.target_component) == (255, 190)
+        assert c.wait("HEARTBEAT", lambda m: m.base_mode & 128, 3) is not None
+        assert c.command(1, 400, 1).result == mavlink.MAV_RESULT_ACCEPTED  # duplicate: idempotent
+        assert c.command(1, 400, NAN).result == mavlink.MAV_RESULT_DENIED  # NaN arm flag
+        assert c.command(1, 12345).result == mavlink.MAV_RESULT_UNSUPPORTED
+        assert c.command(1, 176, 1, 9, 0).result == mavlink.MAV_RESULT_DENIED  # unknown PX4 mode
+        assert c.command(1, 400, 0).result == mavlink.MAV_RESULT_ACCEPTED
+        assert c.wait("HEARTBEAT", lambda m: not m.base_mode & 128, 3) is not None
+        # COMMAND_INT where it applies, UNSUPPORTED where it does not
+        c.mav.command_int_send(1, 1, 0, 176, 0, 0, 1, 4, 3, 0, 0, 0, 0.0)
+        assert c.wait("COMMAND_ACK", lambda m: m.command == 176, 3).result == mavlink.MAV_RESULT_ACCEPTED
+        c.mav.command_int_send(1, 1, 0, 31000, 0, 0, 0, 0, 0, 0, 0, 0, 0.0)
+        assert c.wait("COMMAND_ACK", lambda m: m.command == 31000, 3).result == mavlink.MAV_RESULT_UNSUPPORTED
+        # REQUEST_MESSAGE and SET_MESSAGE_INTERVAL
+        assert c.command(1, 512, 148).result == mavlink.MAV_RESULT_ACCEPTED
+        av = c.wait("AUTOPILOT_VERSION", timeout_s=3)
+        assert av.capabilities & mavlink.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE
+        assert c.command(1, 511, 32, 20000).result == mavlink.MAV_RESULT_ACCEPTED  # 50 Hz
+        c.drain()
+        t = [c.wait("LOCAL_POSITION_NED", timeout_s=2).time_boot_ms for _ in range(11)]
+        assert (t[-1] - t[0]) / 10 < 35  # ~20 ms apart (default would be 100 ms)
+        assert c.command(1, 511, 32, 0).result == mavlink.MAV_RESULT_ACCEPTED  # back to default
+        assert c.command(1, 512, NAN).result == mavlink.MAV_RESULT_DENIED
+        # TIMESYNC and PING replies
+        c.mav.timesync_send(0, 1234567)
+        assert c.wait("TIMESYNC", lambda m: m.ts1 == 1234567 and m.tc1 > 0, 3) is not None
+        c.mav.ping_send(42, 7, 0, 0)
+        assert c.wait("PING", lambda m: m.seq == 7 and m.target_system == 255, 3) is not None
+        # MAVLink FTP is not provided: requests are NAKed at once (MAVProxy falls back to params)
+        req = [0] * 251
+        req[0], req[2], req[3] = 5, 0, 4  # seq 5, session 0, OpenFileRO
+        c.mav.file_transfer_protocol_send(0, 1, 1, req)
+        nak = c.wait("FILE_TRANSFER_PROTOCOL", timeout_s=3)
+        assert nak.payload[3] == 129 and nak.payload[5] == 4 and nak.payload[0] == 6
+    finally:
+        c.close()
+
+
+def test_full_parameter_list_and_set(sitl):
+    c = client_for(sitl, 0)
+    try:
+        c.mav.param_request_list_send(1, 1)
+        seen: dict[int, object] = {}
+        first = c.wait("PARAM_VALUE", timeout_s=3)
+        count = first.param_count
+        seen[first.param_index] = first
+        while len(seen) < count:
+            m = c.wait("PARAM_VALUE", timeout_s=3)
+            assert m is not None, f"got {len(seen)} of {count}"
+            seen[m.param_index] = m
+        names = {m.param_id for m in seen.values()}
+        assert {"MIS_TAKEOFF_ALT", "COM_OF_LOSS_T", "COM_DISARM_PRFLT", "MPC_TILTMAX_AIR", "GF_ACTION"} <= names
+        # int params travel byte-wise (PX4): 2 -> float with the int's bytes
+        gf = next(m for m in seen.values() if m.param_id == "GF_ACTION")
+        assert gf.param_type == MAV_PARAM_TYPE_INT32
+        assert struct.unpack("<i", struct.pack("<f", gf.param_value))[0] == 2
+        # read by name and by index
+        c.mav.param_request_read_send(1, 1, b"MIS_TAKEOFF_ALT", -1)
+        m = c.wait("PARAM_VALUE", lambda m: m.param_id == "MIS_TAKEOFF_ALT", 3)
+        c.mav.param_request_read_send(1, 1, b"", m.param_index)
+        assert c.wait("PARAM_VALUE", lambda x: x.param_index == m.param_index, 3).param_id == "MIS_TAKEOFF_ALT"
+        # set with echo; out-of-range echoes the unchanged value
+        c.mav.param_set_send(1, 1, b"MIS_TAKEOFF_ALT", 4.5, MAV_PARAM_TYPE_REAL32)
+        assert c.wait("PARAM_VALUE", lambda m: m.param_id == "MIS_TAKEOFF_ALT", 3).param_value == 4.5
+        c.mav.param_set_send(1, 1, b"GF_ACTION", encode_param_value(5, MAV_PARAM_TYPE_INT32), MAV_PARAM_TYPE_INT32)
+        echo = c.wait("PARAM_VALUE", lambda m: m.param_id == "GF_ACTION", 3)
+        assert struct.unpack("<i", struct.pack("<f", echo.param_value))[0] == 5
+        c.mav.param_set_send(1, 1, b"MPC_TILTMAX_AIR", 120.0, MAV_PARAM_TYPE_REAL32)
+        echo = c.wait("PARAM_VALUE", lambda m: m.param_id == "MPC_TILTMAX_AIR", 3)
+        assert echo.param_value == pytest.approx(sitl.cfg.inner_loop.geometric.tilt_max_deg)
+        assert sitl.params[0]["MIS_TAKEOFF_ALT"] == 4.5 and sitl.params[1]["MIS_TAKEOFF_ALT"] == 2.5
+    finally:
+        c.mav.param_set_send(1, 1, b"MIS_TAKEOFF_ALT", 2.5, MAV_PARAM_TYPE_REAL32)
+        c.close()
+
+
+def test_offboard_loss_hold_then_land(sitl):
+    k, sysid = 1, 2
+    c = client_for(sitl, k)
+    try:
+        for name, value in (("COM_OF_LOSS_T", 0.5), ("SD_OBL_LAND_T", 0.5)):
+            c.mav.param_set_send(sysid, 1, name.encode(), value, MAV_PARAM_TYPE_REAL32)
+            assert c.wait("PARAM_VALUE", lambda m: m.param_id == name and m.param_value == value, 3)
+        home = sitl.home_ned_m[k]
+
+        def setpoint():
+            c.mav.set_position_target_local_ned_send(0, sysid, 1, 1, POS_ONLY_MASK, home[0], home[1], -2.0,
+                                                     0, 0, 0, 0, 0, 0, 0, 0)
+
+        # Offboard is refused without a setpoint stream
+        assert c.command(sysid, 176, 1, 6, 0).result == mavlink.MAV_RESULT_TEMPORARILY_REJECTED
+        setpoint()
+        assert c.command(sysid, 176, 1, 6, 0).result == mavlink.MAV_RESULT_ACCEPTED
+        setpoint()
+        assert c.command(sysid, 400, 1).result == mavlink.MAV_RESULT_ACCEPTED
+        deadline = time.monotonic() + 8
+        while time.monotonic() < deadline:  # stream until airborne near 2 m
+            setpoint()
+            lp = c.wait("LOCAL_POSITION_NED", timeout_s=1)
+            if lp is not None and lp.z < -1.5:
+                break
+        else:
+            pytest.fail("did not climb in offboard")
+        setpoint()
+        t_stop = time.monotonic()
+        hb = c.wait("HEARTBEAT", lambda m: m.custom_mode == Mode.HOLD, 3)
+        t_hold = time.monotonic()
+        assert hb is not None
+        assert t_hold - t_stop <= 0.5 + 0.2
+        assert c.wait("HEARTBEAT", lambda m: m.custom_mode == Mode.LAND, 3) is not None
+        assert sitl.autopilots[k].mode == Mode.LAND
+    finally:
+        c.command(sysid, 400, 0, 21196)
+        c.close()
+
+
+def _frame(msg, sysid=255) -> bytes:
+    return msg.pack(mavlink.MAVLink(None, srcSystem=sysid, srcComponent=190))
+
+
+def test_bad_input_leaves_sitl_and_other_vehicles_unaffected(sitl):
+    victim, other = 2, 3
+    c_other = client_for(sitl, other)
+    c = client_for(sitl, victim)
+    try:
+        port = sitl.endpoints[victim].local_port
+        bad_before = sitl.endpoints[victim].bad_frames
+        arm = mavlink.MAVLink_command_long_message(4, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)  # for sysid 4
+        good = _frame(arm)
+        wrong_crc = bytearray(_frame(mavlink.MAVLink_command_long_message(3, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)))
+        wrong_crc[-1] ^= 0xFF
+        junk = [b"", b"\x00", b"\xfd", b"\xfd\xff\x00", bytes(range(256)), good[:7], good[:-3], bytes(wrong_crc),
+                b"\xfe\x05" + b"\x00" * 20, b"\xfd" * 300, os.urandom(1000), good]
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            for blob in junk:
+                s.sendto(blob, ("127.0.0.1", port))
+        # the victim still answers and was not armed by any of it (the arm was for sysid 4)
+        c.mav.param_request_read_send(3, 1, b"COM_OF_LOSS_T", -1)
+        assert c.wait("PARAM_VALUE", lambda m: m.param_id == "COM_OF_LOSS_T", 3) is not None
+        assert c.wait("HEARTBEAT", lambda m: m.get_srcSystem() == 3 and not m.base_mode & 128, 3)
+        assert sitl.endpoints[victim].bad_frames > bad_before
+        # the vehicle the stray arm named was not armed through another vehicle's link
+        hb = c_other.wait("HEARTBEAT", lambda m: m.get_srcSystem() == 4, 3)
+        assert hb is not None and not hb.base_mode & 128
+        assert not sitl.autopilots[other].armed and not sitl.autopilots[victim].armed
+        assert c_other.wait("LOCAL_POSITION_NED", timeout_s=2) is not None
+    finally:
+        c.close()
+        c_other.close()
+
+
+def test_shared_gcs_endpoint_carries_all_vehicles():
+    import dataclasses
+
+    from sim_bridge.sitl.testing import free_udp_base_port
+
+    ep = dataclasses.replace(local_endpoints(3), gcs_enabled=True, gcs_remote_port=free_udp_base_port(1))
+    bg = BackgroundSitl(SitlConfig(vehicles=3, endpoints=ep))
+    server = bg.start()
+    c = MavClient(ep.gcs_remote_port)
+    try:
+        seen = set()
+        for _ in range(30):
+            hb = c.wait("HEARTBEAT", timeout_s=3)
+            assert hb is not None
+            seen.add(hb.get_srcSystem())
+            if seen == {1, 2, 3}:
+                break
+        assert seen == {1, 2, 3}
+        ack = c.command(2, 400, 1)
+        assert ack.get_srcSystem() == 2 and ack.result == mavlink.MAV_RESULT_ACCEPTED
+        assert [ap.armed for ap in server.autopilots] == [False, True, False]
+        c.mav.param_request_read_send(0, 0, b"MAV_SYS_ID", -1)  # broadcast: every vehicle answers
+        ids = set()
+        for _ in range(3):
+            m = c.wait("PARAM_VALUE", lambda m: m.param_id == "MAV_SYS_ID", 3)
+            assert m is not None
+            ids.add((m.get_srcSystem(), struct.unpack("<i", struct.pack("<f", m.param_value))[0]))
+        assert ids == {(1, 1), (2, 2), (3, 3)}
+    finally:
+        c.command(2, 400, 0)
+        c.close()
+        bg.stop()
