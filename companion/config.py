@@ -9,9 +9,12 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
-from pydantic import TypeAdapter, ValidationError
+from pydantic import ConfigDict, TypeAdapter, ValidationError
 
 T = TypeVar("T")
+
+STRICT = ConfigDict(extra="forbid", frozen=True)
+"""The pydantic config of every config dataclass: unknown keys are errors, values immutable."""
 
 
 class ConfigError(ValueError):

@@ -11,13 +11,14 @@ from functools import cached_property
 from typing import Literal
 
 import numpy as np
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass
+
+from companion.config import STRICT
 
 from companion.control import topology
 from companion.control.formation import ConsensusGains, check_stability
 
-STRICT = ConfigDict(extra="forbid", frozen=True)
 Vec3 = tuple[float, float, float]
 
 

@@ -10,11 +10,11 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from pydantic import ConfigDict, Field
+from pydantic import Field
 from pydantic.dataclasses import dataclass
 from scipy.spatial.transform import Rotation
 
-STRICT = ConfigDict(extra="forbid", frozen=True)
+from companion.config import STRICT
 
 
 @dataclass(config=STRICT)

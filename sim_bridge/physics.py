@@ -11,8 +11,10 @@ import math
 
 import numpy as np
 from numba import njit
-from pydantic import ConfigDict, Field
+from pydantic import Field
 from pydantic.dataclasses import dataclass
+
+from companion.config import STRICT
 
 from companion.control import so3
 from companion.control.geometric import geometric_core, pack_control_params, pack_setpoint
@@ -24,7 +26,7 @@ from sim_bridge.dynamics import allocate, motor_coeffs, pack_vehicle_params, rig
 CTRL_GEOMETRIC, CTRL_PID = 0, 1
 
 
-@dataclass(config=ConfigDict(extra="forbid", frozen=True))
+@dataclass(config=STRICT)
 class WindConfig:
     """Fleet-wide wind: steady NED vector plus first-order Gauss-Markov gusts per axis.
 

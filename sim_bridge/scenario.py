@@ -1,15 +1,15 @@
 """Scenario config: everything `swarmdrop simulate` needs, validated at load."""
 from __future__ import annotations
 
-from pydantic import ConfigDict, Field, model_validator
+from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass
+
+from companion.config import STRICT
 
 from companion.mission import MissionConfig
 from companion.params import InnerLoopConfig, VehicleParams
 from sim_bridge.carrier import CarrierConfig
 from sim_bridge.physics import WindConfig
-
-STRICT = ConfigDict(extra="forbid", frozen=True)
 
 
 @dataclass(config=STRICT)

@@ -25,8 +25,10 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
-from pydantic import ConfigDict, Field
+from pydantic import Field
 from pydantic.dataclasses import dataclass
+
+from companion.config import STRICT
 
 from companion.control import topology as _topo
 
@@ -44,7 +46,6 @@ __all__ = [
     "KRON_MAX_N",
 ]
 
-STRICT = ConfigDict(extra="forbid", frozen=True)
 
 _I3 = np.eye(3)
 _Z3 = np.zeros((3, 3))

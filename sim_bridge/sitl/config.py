@@ -5,14 +5,12 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import ConfigDict, Field
+from pydantic import Field
 from pydantic.dataclasses import dataclass
 
-from companion.config import ConfigError, validate
+from companion.config import STRICT, ConfigError, validate
 from companion.params import InnerLoopConfig, VehicleParams
 from sim_bridge.carrier import CarrierConfig
-
-STRICT = ConfigDict(extra="forbid", frozen=True)
 
 
 @dataclass(config=STRICT)
