@@ -216,32 +216,33 @@ def consensus_accel(
             raise ValueError(f"rows must be a 1-D integer array of indices in [0, {n}), got {rows!r}")
 
     Wr = W if rows is None else W[rows]  # (R, N)
-    heard = np.flatnonzero(Wr.any(axis=0))  # vehicles any selected row hears
-    # Error states only of rows and heard vehicles: nothing else is ever read, so
-    # unknown (NaN) states elsewhere cannot leak in as 0 * NaN.
-    need = np.arange(n) if rows is None else np.union1d(rows, heard)
-    e_pos = pos[need] - np.asarray(h_pos_ned_m, dtype=float)[need]
-    e_vel = vel[need] - np.asarray(h_vel_ned_mps, dtype=float)[need]
-    h_acc = np.asarray(h_acc_ned_mps2, dtype=float)
-    h_acc = h_acc if rows is None else h_acc[rows]
-    bad = ~(np.isfinite(e_pos).all(axis=1) & np.isfinite(e_vel).all(axis=1))
-    if bad.any() or not np.isfinite(h_acc).all():
+    sel = slice(None) if rows is None else rows
+    # Vehicles read: the selected rows and every vehicle they hear. Nothing else is
+    # read, and unread rows are zeroed, so unknown (NaN) states elsewhere cannot
+    # leak in as 0 * NaN.
+    need = Wr.any(axis=0)
+    need[sel] = True
+    e_pos = pos - h_pos_ned_m
+    e_vel = vel - h_vel_ned_mps
+    h_acc = np.asarray(h_acc_ned_mps2, dtype=float)[sel]
+    finite = np.isfinite(e_pos).all(axis=1) & np.isfinite(e_vel).all(axis=1)
+    if not finite[need].all() or not np.isfinite(h_acc).all():
         who = "all" if rows is None else rows.tolist()
-        raise ValueError(f"non-finite state or reference for vehicle(s) {need[bad].tolist()} read by vehicle(s) {who}")
-    sel = slice(None) if rows is None else np.searchsorted(need, rows)
-    hsel = heard if rows is None else np.searchsorted(need, heard)
-    Wh = Wr[:, heard]  # (R, H)
-    deg = Wh.sum(axis=1, keepdims=True)
+        bad = np.flatnonzero(need & ~finite).tolist()
+        raise ValueError(f"non-finite state or reference for vehicle(s) {bad} read by vehicle(s) {who}")
+    if not need.all():
+        e_pos = np.where(need[:, None], e_pos, 0.0)
+        e_vel = np.where(need[:, None], e_vel, 0.0)
+    deg = Wr.sum(axis=1, keepdims=True)
     # sum_j w_ij (e_j - e_i); a self-loop w_ii contributes w_ii (e_i - e_i) = 0.
-    c_pos = Wh @ e_pos[hsel] - deg * e_pos[sel]
-    c_vel = Wh @ e_vel[hsel] - deg * e_vel[sel]
+    c_pos = Wr @ e_pos - deg * e_pos[sel]
+    c_vel = Wr @ e_vel - deg * e_vel[sel]
     # K = [k_pos I3, k_vel I3], so K x = k_pos p + k_vel v (no 3x6 products needed).
     g = gains
     u = g.k2_pos_per_s2 * e_pos[sel] + g.k2_vel_per_s * e_vel[sel]
     u += g.k3_pos_per_s2 * c_pos + g.k3_vel_per_s * c_vel + h_acc
     if g.k1_pos_per_s2 or g.k1_vel_per_s:
-        r_ = slice(None) if rows is None else rows
-        u += g.k1_pos_per_s2 * pos[r_] + g.k1_vel_per_s * vel[r_]
+        u += g.k1_pos_per_s2 * pos[sel] + g.k1_vel_per_s * vel[sel]
     return u
 
 
