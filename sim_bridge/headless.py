@@ -8,12 +8,14 @@ inner-loop geometric or PID controller runs at the physics rate) -> record.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from numba import njit
 from scipy.spatial.distance import pdist
+from tqdm import tqdm
 
 from companion import frames
 from companion.agent import Agent, OwnState, Phase, SwarmView
@@ -152,10 +154,6 @@ def run_scenario(cfg: ScenarioConfig, progress: bool = True, clock=None) -> RunR
     Raises:
         FormationUnstableError: the mission's consensus gains are not stabilising.
     """
-    import time
-
-    from tqdm import tqdm
-
     clock = clock or time.perf_counter
     rng = np.random.default_rng(cfg.seed)
     mission = Mission(cfg.mission)

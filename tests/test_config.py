@@ -1,4 +1,5 @@
-"""Config validation: errors name the dotted path and the reason."""
+"""Config validation: errors name the dotted path and the reason; the simulate CLI."""
+import json
 import subprocess
 import sys
 from pathlib import Path
@@ -57,3 +58,14 @@ def test_cli_reports_config_error(tmp_path):
     )
     assert r.returncode == 2
     assert "carrier.vel_ned_mps" in r.stderr
+
+
+def test_cli_simulate_writes_run_directory_and_passes_checks(tmp_path):
+    from companion.cli import main
+
+    out = tmp_path / "run"
+    assert main(["simulate", str(ROOT / "configs" / "small_6.yaml"), "--out", str(out), "--quiet",
+                 "--no-figures", "--check", "--seed", "11"]) == 0
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["seed"] == 11 and all(m["checks"].values())
+    assert (out / "telemetry.npz").stat().st_size > 0 and (out / "config.json").exists()
