@@ -182,7 +182,7 @@ def run_scenario(cfg: ScenarioConfig, progress: bool = True, clock=None) -> RunR
     wall0 = clock()
     n_ticks = int(math.ceil(cfg.duration_s / dt_agent))
     vehicle_steps = 0
-    bar = tqdm(total=round(cfg.duration_s), unit="sim-s", disable=not progress, desc=cfg.name)
+    bar = tqdm(total=round(cfg.duration_s), unit="sim-s", disable=not progress, desc=cfg.name, mininterval=0.5)
     for k in range(n_ticks + 1):
         t = k * dt_agent
         due = ~released & (rel_s <= t + 1e-9)
@@ -224,6 +224,7 @@ def run_scenario(cfg: ScenarioConfig, progress: bool = True, clock=None) -> RunR
         if int(t + dt_agent) != int(t):
             bar.update(1)
             bar.set_postfix_str(_phase_summary(phase))
+    bar.total = bar.n  # finished early (mission complete): close the bar at 100 %
     bar.close()
     wall = clock() - wall0
     return RunResult(
