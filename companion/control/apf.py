@@ -254,10 +254,20 @@ def _obstacle_loop(p, o, r, gain, infl, kappa):
     return out
 
 
-def _clip_norm(u: np.ndarray, max_norm: float) -> np.ndarray:
-    norm = np.linalg.norm(u, axis=-1, keepdims=True)
-    scale = np.minimum(1.0, max_norm / np.maximum(norm, 1e-300))
-    return u * scale
+@njit(cache=True)
+def _clip_sum(u1, u2, u1_max, total_max):
+    """Row-wise clip(clip(u1, u1_max) + u2, total_max) for (N, 3) arrays (compiled)."""
+    out = np.empty_like(u1)
+    for i in range(u1.shape[0]):
+        n1 = np.sqrt(u1[i, 0] ** 2 + u1[i, 1] ** 2 + u1[i, 2] ** 2)
+        s1 = min(1.0, u1_max / max(n1, 1e-300))
+        for a in range(3):
+            out[i, a] = s1 * u1[i, a] + u2[i, a]
+        nt = np.sqrt(out[i, 0] ** 2 + out[i, 1] ** 2 + out[i, 2] ** 2)
+        st = min(1.0, total_max / max(nt, 1e-300))
+        for a in range(3):
+            out[i, a] *= st
+    return out
 
 
 def combined_accel(
@@ -297,4 +307,4 @@ def combined_accel(
     for name, v in (("u1_max_mps2", u1_max_mps2), ("total_max_mps2", total_max_mps2)):
         if not v > 0:
             raise ValueError(f"{name} must be > 0, got {v!r}")
-    return _clip_norm(_clip_norm(u1, u1_max_mps2) + u2, total_max_mps2)
+    return _clip_sum(u1, u2, float(u1_max_mps2), float(total_max_mps2))

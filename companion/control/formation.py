@@ -25,6 +25,7 @@ from __future__ import annotations
 from typing import Literal
 
 import numpy as np
+from numba import njit
 from pydantic import Field
 from pydantic.dataclasses import dataclass
 
@@ -215,35 +216,56 @@ def consensus_accel(
         if rows.ndim != 1 or not np.issubdtype(rows.dtype, np.integer) or np.any((rows < 0) | (rows >= n)):
             raise ValueError(f"rows must be a 1-D integer array of indices in [0, {n}), got {rows!r}")
 
-    Wr = W if rows is None else W[rows]  # (R, N)
-    sel = slice(None) if rows is None else rows
-    # Vehicles read: the selected rows and every vehicle they hear. Nothing else is
-    # read, and unread rows are zeroed, so unknown (NaN) states elsewhere cannot
-    # leak in as 0 * NaN.
-    need = Wr.any(axis=0)
-    need[sel] = True
-    e_pos = pos - h_pos_ned_m
-    e_vel = vel - h_vel_ned_mps
-    h_acc = np.asarray(h_acc_ned_mps2, dtype=float)[sel]
-    finite = np.isfinite(e_pos).all(axis=1) & np.isfinite(e_vel).all(axis=1)
-    if not finite[need].all() or not np.isfinite(h_acc).all():
-        who = "all" if rows is None else rows.tolist()
-        bad = np.flatnonzero(need & ~finite).tolist()
-        raise ValueError(f"non-finite state or reference for vehicle(s) {bad} read by vehicle(s) {who}")
-    if not need.all():
-        e_pos = np.where(need[:, None], e_pos, 0.0)
-        e_vel = np.where(need[:, None], e_vel, 0.0)
-    deg = Wr.sum(axis=1, keepdims=True)
-    # sum_j w_ij (e_j - e_i); a self-loop w_ii contributes w_ii (e_i - e_i) = 0.
-    c_pos = Wr @ e_pos - deg * e_pos[sel]
-    c_vel = Wr @ e_vel - deg * e_vel[sel]
-    # K = [k_pos I3, k_vel I3], so K x = k_pos p + k_vel v (no 3x6 products needed).
+    rows = np.arange(n) if rows is None else rows.astype(np.int64)
     g = gains
-    u = g.k2_pos_per_s2 * e_pos[sel] + g.k2_vel_per_s * e_vel[sel]
-    u += g.k3_pos_per_s2 * c_pos + g.k3_vel_per_s * c_vel + h_acc
-    if g.k1_pos_per_s2 or g.k1_vel_per_s:
-        u += g.k1_pos_per_s2 * pos[sel] + g.k1_vel_per_s * vel[sel]
-    return u
+    k = np.array([g.k1_pos_per_s2, g.k1_vel_per_s, g.k2_pos_per_s2, g.k2_vel_per_s, g.k3_pos_per_s2, g.k3_vel_per_s])
+    out = np.empty((len(rows), 3))
+    bad = _consensus_rows(pos, vel, np.asarray(h_pos_ned_m, float), np.asarray(h_vel_ned_mps, float),
+                          np.asarray(h_acc_ned_mps2, float), W, rows, k, out)
+    if bad >= 0:
+        who = rows.tolist() if len(rows) <= 10 else "..."
+        raise ValueError(f"non-finite state or reference for vehicle(s) [{bad}] read by vehicle(s) {who}")
+    return out
+
+
+@njit(cache=True)
+def _consensus_rows(pos, vel, h_pos, h_vel, h_acc, W, rows, k, out) -> int:
+    """Compiled eq. 27 for the vehicles `rows`, written into out (R, 3).
+
+    Reads only the rows and the vehicles they hear (W[i, j] != 0), so unknown
+    (NaN) states elsewhere never enter as 0 * NaN. k = (k1_pos, k1_vel, k2_pos,
+    k2_vel, k3_pos, k3_vel). Returns -1, or the index of the first vehicle read
+    whose state or reference is not finite. A self-loop w_ii adds w_ii (e_i - e_i) = 0
+    and is skipped.
+    """
+    n = pos.shape[0]
+    ei = np.empty(6)
+    ej = np.empty(6)
+    c = np.empty(6)
+    for r in range(rows.shape[0]):
+        i = rows[r]
+        for a in range(3):
+            ei[a] = pos[i, a] - h_pos[i, a]
+            ei[a + 3] = vel[i, a] - h_vel[i, a]
+        if not (np.all(np.isfinite(ei)) and np.all(np.isfinite(h_acc[i]))):
+            return i
+        c[:] = 0.0
+        for j in range(n):
+            w = W[i, j]
+            if w == 0.0 or j == i:
+                continue
+            for a in range(3):
+                ej[a] = pos[j, a] - h_pos[j, a]
+                ej[a + 3] = vel[j, a] - h_vel[j, a]
+            if not np.all(np.isfinite(ej)):
+                return j
+            for a in range(6):
+                c[a] += w * (ej[a] - ei[a])
+        for a in range(3):
+            # K = [k_pos I3, k_vel I3], so K x = k_pos p + k_vel v.
+            out[r, a] = (k[0] * pos[i, a] + k[1] * vel[i, a] + k[2] * ei[a] + k[3] * ei[a + 3]
+                         + k[4] * c[a] + k[5] * c[a + 3] + h_acc[i, a])
+    return -1
 
 
 def _mode_blocks(gains: ConsensusGains) -> tuple[np.ndarray, np.ndarray]:
