@@ -153,8 +153,7 @@ class Agent:
         """Eq. 31 for the own vehicles `rows` (indices into self.ids): (len(rows), 3)."""
         m = self.mission
         cfg = m.cfg
-        tau = t_s - self.t_go_s if not np.isnan(self.t_go_s) else -1.0
-        c_pos, c_vel, c_acc = m.path.at(tau)
+        c_pos, c_vel, c_acc = m.path.at(m.tau_s(t_s, self.t_go_s))
         h_pos, h_vel, h_acc = formation_reference(m.offsets_ned_m, c_pos, c_vel, c_acc)
 
         ids = self.ids[rows]

@@ -208,6 +208,12 @@ class Mission:
         self.obstacle_radii_m = np.array([o.radius_m for o in cfg.obstacles], dtype=float)
         self.yaw_rad = float(np.radians(cfg.yaw_deg))
 
+    @staticmethod
+    def tau_s(t_s: float, t_go_s: float) -> float:
+        """Time on the centre path at mission time t_s: since transit start t_go_s,
+        or -1 (the assembly point) while t_go_s is not agreed yet (NaN)."""
+        return -1.0 if np.isnan(t_go_s) else t_s - t_go_s
+
     def slot_ned_m(self, tau_s: float) -> np.ndarray:
         """Every vehicle's formation slot h_i at tau_s after transit start, (N, 3)."""
         c, _, _ = self.path.at(tau_s)

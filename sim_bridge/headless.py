@@ -205,7 +205,7 @@ def run_scenario(cfg: ScenarioConfig, progress: bool = True, clock=None) -> RunR
         if math.isnan(t_all_assembled) and assembled.all():
             t_all_assembled = t
 
-        slot = mission.slot_ned_m(t - out.t_go_s if not math.isnan(out.t_go_s) else -1.0)
+        slot = mission.slot_ned_m(mission.tau_s(t, out.t_go_s))
         airborne = np.flatnonzero(released)
         safety.update(t, airborne, state.pos_ned_m[airborne], mission)
         if k % log_every == 0:
