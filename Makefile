@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo demo-headless test bench clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -15,12 +15,16 @@ $(STAMP): pyproject.toml | $(BIN)/python
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/swarmdrop simulate configs/paper_40.yaml --out runs/paper_40
+	$(BIN)/swarmdrop run configs/paper_40.yaml --out runs/paper_40
+
+demo-headless: $(STAMP)
+	$(BIN)/swarmdrop simulate configs/paper_40.yaml --out runs/paper_40_headless
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
+	$(BIN)/python -m compileall -q companion sim_bridge swarmdrop
 	$(BIN)/python -m bench.run
 
 clean:

@@ -2,7 +2,12 @@
 
 - physics.json: vehicle-steps/s at 1 kHz for N = 40, 400, 4000 (geometric and PID);
 - paper_40.json: wall time, real-time factor and CPU of the headless paper_40 run;
-- sitl.json: the MAVLink SITL alone at N = 40, 100, 250 (when the SITL is installed).
+- sitl.json: the MAVLink SITL alone at N = 40, 100, 250;
+- wire.json: the lean MAVLink codec against pymavlink (µs per message);
+- fleet.json: `swarmdrop run` (SITL + one agent process per vehicle) on paper_40 in real
+  time, the largest fleet that keeps real time, and one agent's start-up time and PSS.
+
+`python -m bench.run NAME ...` runs only the named parts.
 """
 from __future__ import annotations
 
@@ -59,18 +64,26 @@ def load_scenario_small(cfg):
     return dataclasses.replace(cfg, duration_s=2.0)
 
 
-def main() -> int:
-    from bench.bench_physics import run as run_physics
+def main(argv: list[str] | None = None) -> int:
+    parts = set(sys.argv[1:] if argv is None else argv) or {"physics", "paper_40", "sitl", "wire", "fleet"}
+    if "physics" in parts:
+        from bench.bench_physics import run as run_physics
 
-    phys = run_physics()
-    _write("physics", phys)
-    _write("paper_40", bench_paper_40())
-    try:
+        _write("physics", run_physics())
+    if "paper_40" in parts:
+        _write("paper_40", bench_paper_40())
+    if "sitl" in parts:
         from sim_bridge.sitl.bench import run as run_sitl
-    except ImportError:
-        print("SITL not installed: skipping sitl.json")
-    else:
+
         _write("sitl", run_sitl())
+    if "wire" in parts:
+        from bench.bench_wire import run as run_wire
+
+        _write("wire", run_wire())
+    if "fleet" in parts:
+        from bench.bench_fleet import run as run_fleet
+
+        _write("fleet", run_fleet())
     return 0
 
 

@@ -1,30 +1,36 @@
 """The sans-IO swarm agent: one code path for one vehicle or a batch of vehicles.
 
-`Agent.step` takes the time, the agent's own vehicles' states and the swarm view
-(everything heard about every vehicle, NaN where nothing is known) and returns
-setpoints plus phases. It opens no socket and reads no clock: the headless
-runner calls it in-process, the MAVLink companion wraps it for one vehicle.
+`Agent.step(t_s, own, view)` takes the mission time, the agent's own vehicles'
+states (from their autopilots) and what each of them has heard of the swarm
+(`companion.swarm.SwarmView`, one receiver row per own vehicle), and returns
+setpoints, phases and the states to publish. It opens no socket and reads no
+clock: the headless runner calls it for every vehicle at once, a companion
+computer for its one vehicle, through the same lines.
 
 Phases and their transitions (docs/agent.md):
-    LAUNCH    -> STABILISE  when the vehicle is released from the carrier;
-    STABILISE -> ASSEMBLE   when tilt < stable_tilt_deg and |v| < stable_speed_mps
-                            have held for stable_dwell_s;
-    ASSEMBLE  -> TRANSIT    at t_go: the first go_quantum_s boundary after every
-                            vehicle of the swarm has reported "assembled";
+    LAUNCH    -> STABILISE  the vehicle has left the carrier (or the ground);
+    STABILISE -> ASSEMBLE   its autopilot reports it ready (throw recovery or take-off
+                            done) and tilt < stable_tilt_deg, |v| < stable_speed_mps
+                            have held for stable_dwell_s; until then the agent
+                            commands nothing: the autopilot owns the recovery;
+    ASSEMBLE  -> TRANSIT    at t_go, agreed by the swarm (docs/swarm.md);
     TRANSIT   -> HOVER      when the formation centre reaches the last waypoint;
     HOVER     -> LAND       land_after_hover_s after hover began, if configured.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
 from enum import IntEnum
+from typing import Callable
 
 import numpy as np
 
-from companion.control import apf
-from companion.control.formation import consensus_accel, formation_reference
+from companion.control.apf import clip_sum_rows, pair_repulsion_rows, segment_repulsion_rows
+from companion.control.formation import consensus_rows, gains_vector
 from companion.mission import Mission
 from companion.state import FleetSetpoint
+from companion.swarm import FLAG_ASSEMBLED, FLAG_OWN_VALID, FLAG_READY, SwarmStates, SwarmView
 
 
 class Phase(IntEnum):
@@ -40,62 +46,69 @@ FORMATION_PHASES = (Phase.ASSEMBLE, Phase.TRANSIT, Phase.HOVER)
 # Plain ints for the per-tick code: IntEnum attribute access costs ~1 us each.
 _LAUNCH, _STABILISE, _ASSEMBLE, _TRANSIT, _HOVER, _LAND = (int(p) for p in Phase)
 IN_FORMATION = np.isin(np.arange(len(Phase)), [int(p) for p in FORMATION_PHASES])  # lookup by phase value
+GHOST_COLUMN_M = 100.0
+"""Depth of a silent vehicle's column when the ground height is unknown."""
 
 
 def _norm_rows(a: np.ndarray) -> np.ndarray:
-    """Euclidean norm of each row of an (n, 3) array (cheaper than np.linalg.norm)."""
-    return np.sqrt(np.einsum("ij,ij->i", a, a))
+    """Euclidean norm along the last axis (cheaper than np.linalg.norm)."""
+    return np.sqrt(np.einsum("...i,...i->...", a, a))
 
 
 @dataclass
 class OwnState:
-    """What an agent knows of its own n vehicles (from its autopilot).
+    """What an agent knows of its own n vehicles, first hand (from their autopilots).
 
     Attributes:
-        pos_ned_m: (n, 3) NED position, m.
-        vel_ned_mps: (n, 3) NED velocity, m/s.
-        tilt_rad: (n,) angle between body z and world z, rad.
-        released: (n,) bool, True once the vehicle has left the carrier.
+        pos_ned_m: (n, 3) position, mission NED frame, m.
+        vel_ned_mps: (n, 3) velocity, mission NED frame, m/s.
+        att_q_wxyz: (n, 4) attitude NED->FRD, w first.
+        stamp_s: (n,) mission time at which this state was measured, s.
+        released: (n,) bool, the vehicle has left the carrier (or the ground).
+        ready: (n,) bool, its autopilot has finished the launch recovery (throw
+            recovery or take-off) and accepts offboard setpoints.
     """
 
     pos_ned_m: np.ndarray
     vel_ned_mps: np.ndarray
-    tilt_rad: np.ndarray
+    att_q_wxyz: np.ndarray
+    stamp_s: np.ndarray
     released: np.ndarray
+    ready: np.ndarray
 
 
-@dataclass
-class SwarmView:
-    """The latest known state of every vehicle of the swarm, indexed by vehicle id.
+@dataclass(frozen=True)
+class AgentKernels:
+    """The per-vehicle loops the agent calls: plain Python by default (onboard);
+    the simulator passes numba-compiled twins of the same functions (sim_bridge.jit)."""
 
-    Attributes:
-        pos_ned_m: (N, 3), NaN rows for vehicles nothing is known of (docked, not heard).
-        vel_ned_mps: (N, 3), likewise.
-        phase: (N,) int Phase values (LAUNCH when unknown).
-        assembled: (N,) bool, the vehicle has reached its slot at least once.
-    """
-
-    pos_ned_m: np.ndarray
-    vel_ned_mps: np.ndarray
-    phase: np.ndarray
-    assembled: np.ndarray
-
-    @classmethod
-    def unknown(cls, n: int) -> "SwarmView":
-        return cls(
-            np.full((n, 3), np.nan), np.full((n, 3), np.nan), np.zeros(n, dtype=np.int8), np.zeros(n, dtype=bool)
-        )
+    consensus_rows: Callable = consensus_rows
+    pair_repulsion_rows: Callable = pair_repulsion_rows
+    segment_repulsion_rows: Callable = segment_repulsion_rows
+    clip_sum_rows: Callable = clip_sum_rows
 
 
 @dataclass
 class AgentOutput:
-    """Setpoints (n rows, NaN = not commanded), phases and assembled flags of the
-    agent's own vehicles, plus the agreed transit start time (NaN until known)."""
+    """What one step decided for the agent's n vehicles.
+
+    Attributes:
+        setpoint: n rows, NaN = not commanded (an all-NaN row: send nothing).
+        phase: (n,) Phase values.
+        assembled: (n,) bool, reached the slot at least once.
+        t_go_s: (n,) transit start each vehicle holds, s (NaN = not agreed yet).
+        own_valid: (n,) bool, the own state was finite and fresh.
+        slot_ned_m: (n, 3) each vehicle's formation slot h_i(t) (NaN before ASSEMBLE).
+        published: the n states to share with the swarm.
+    """
 
     setpoint: FleetSetpoint
     phase: np.ndarray
     assembled: np.ndarray
-    t_go_s: float
+    t_go_s: np.ndarray
+    own_valid: np.ndarray
+    slot_ned_m: np.ndarray
+    published: SwarmStates = field(repr=False)
 
 
 class Agent:
@@ -105,118 +118,212 @@ class Agent:
         mission: the shared mission (every agent derives the same one).
         ids: (n,) vehicle ids this agent flies: one id on a companion computer,
             all ids in the headless runner.
+        kernels: the loops to run (default: interpreted, no JIT).
     """
 
-    def __init__(self, mission: Mission, ids: np.ndarray):
+    def __init__(self, mission: Mission, ids: np.ndarray, kernels: AgentKernels | None = None):
         self.mission = mission
-        self.ids = np.asarray(ids, dtype=int)
+        self.ids = np.asarray(ids, dtype=np.int64)
+        self.kernels = kernels or AgentKernels()
         n = len(self.ids)
+        self._rows = np.arange(n)
         self.phase = np.full(n, _LAUNCH, dtype=np.int8)
         self.stable_since_s = np.full(n, np.nan)
         self.assembled = np.zeros(n, dtype=bool)
-        self.t_go_s = np.nan
+        self.t_go_s = np.full(n, np.nan)
+        self.go_ready_since_s = np.full(n, np.nan)
+        cfg = mission.cfg
+        self._k = gains_vector(cfg.consensus)
+        self._cos_tilt_max = math.cos(math.radians(cfg.phases.stable_tilt_deg))
+        self._h_vel, self._h_acc = np.empty((mission.n, 3)), np.empty((mission.n, 3))
+        k = self._n_obstacles = len(mission.obstacle_radii_m)
+        # Static obstacles as zero-length capsules, one copy per own row (read-only views).
+        self._obs_ends = np.broadcast_to(mission.obstacle_centres_ned_m, (n, k, 3))
+        self._obs_r = np.broadcast_to(mission.obstacle_radii_m, (n, k))
+        self._obs_use = np.broadcast_to(True, (n, k))
 
     # ------------------------------------------------------------------ phases
-    def _advance_phases(self, t_s: float, own: OwnState, swarm: SwarmView) -> None:
+    def _advance_phases(self, t_s: float, own: OwnState, valid: np.ndarray, cos_tilt: np.ndarray) -> None:
         ph = self.mission.cfg.phases
         phase = self.phase
-        phase[(phase == _LAUNCH) & own.released] = _STABILISE
+        if phase.min() <= _STABILISE:  # (skipped once every own vehicle flies formation)
+            phase[(phase == _LAUNCH) & own.released] = _STABILISE
+            stab = phase == _STABILISE
+            calm = valid & own.ready & (cos_tilt > self._cos_tilt_max) & (
+                _norm_rows(own.vel_ned_mps) < ph.stable_speed_mps)
+            self.stable_since_s[stab & calm & np.isnan(self.stable_since_s)] = t_s
+            self.stable_since_s[stab & ~calm] = np.nan
+            done = stab & calm & (t_s - self.stable_since_s >= ph.stable_dwell_s - 1e-9)
+            phase[done] = _ASSEMBLE
 
-        stab = phase == _STABILISE
-        calm = (own.tilt_rad < np.radians(ph.stable_tilt_deg)) & (
-            _norm_rows(own.vel_ned_mps) < ph.stable_speed_mps
-        )
-        self.stable_since_s[stab & calm & np.isnan(self.stable_since_s)] = t_s
-        self.stable_since_s[stab & ~calm] = np.nan
-        done = stab & calm & (t_s - self.stable_since_s >= ph.stable_dwell_s - 1e-9)
-        phase[done] = _ASSEMBLE
-
-        if np.isnan(self.t_go_s) and bool(np.all(swarm.assembled)):
-            q = ph.go_quantum_s
-            self.t_go_s = (np.floor(t_s / q + 1e-9) + 1.0) * q
-        if not np.isnan(self.t_go_s):
-            t_hover = self.t_go_s + self.mission.path.duration_s
-            phase[(phase == _ASSEMBLE) & (t_s >= self.t_go_s)] = _TRANSIT
+        go = self.t_go_s
+        has_go = ~np.isnan(go)
+        if has_go.any():
+            t_hover = go + self.mission.path.duration_s
+            phase[(phase == _ASSEMBLE) & has_go & (t_s >= go)] = _TRANSIT
             phase[(phase == _TRANSIT) & (t_s >= t_hover)] = _HOVER
             if ph.land_after_hover_s is not None:
                 phase[(phase == _HOVER) & (t_s >= t_hover + ph.land_after_hover_s)] = _LAND
 
+    def _agree_t_go(self, t_s: float, view: SwarmView, age: np.ndarray) -> None:
+        """The transit-start rule (docs/swarm.md): adopt the earliest t_go heard; with
+        none, propose t + go_margin_s (rounded up to go_quantum_s) once this vehicle
+        and every vehicle heard within peer_timeout_s report assembled, and either all
+        N have been heard so, or that has held for go_wait_s."""
+        sw, n_veh = self.mission.cfg.swarm, self.mission.n
+        heard = np.fmin.reduce(view.t_go_s, axis=1) if n_veh else np.full(len(self.ids), np.nan)
+        self.t_go_s = np.fmin(self.t_go_s, heard)
+        pending = np.isnan(self.t_go_s)
+        if not pending.any():
+            return
+        r, ids = self._rows, self.ids
+        alive = age <= sw.peer_timeout_s
+        alive[r, ids] = True
+        asm = view.assembled()
+        asm[r, ids] = self.assembled
+        cond = self.assembled & np.all(asm | ~alive, axis=1)
+        self.go_ready_since_s = np.where(cond, np.fmin(self.go_ready_since_s, t_s), np.nan)
+        everyone = np.sum(alive & asm, axis=1) == n_veh
+        propose = pending & cond & (everyone | (t_s - self.go_ready_since_s >= sw.go_wait_s - 1e-9))
+        if propose.any():
+            q = self.mission.cfg.phases.go_quantum_s
+            self.t_go_s[propose] = math.ceil((t_s + sw.go_margin_s) / q - 1e-9) * q
+
     # ---------------------------------------------------------------- planner
-    def _merged_view(self, own: OwnState, swarm: SwarmView) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """The swarm view with this agent's own vehicles overwritten by what it
-        knows first-hand: positions (N, 3), velocities (N, 3), phases (N,)."""
-        pos, vel, phase = swarm.pos_ned_m.copy(), swarm.vel_ned_mps.copy(), swarm.phase.copy()
-        pos[self.ids], vel[self.ids], phase[self.ids] = own.pos_ned_m, own.vel_ned_mps, self.phase
-        return pos, vel, phase
+    def _formation_accel(self, t_s: float, rows: np.ndarray, own: OwnState, view: SwarmView,
+                         age: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Eq. 31 for the own rows `rows` (indices into self.ids).
 
-    def _formation_accel(self, t_s: float, rows: np.ndarray, own: OwnState, swarm: SwarmView) -> np.ndarray:
-        """Eq. 31 for the own vehicles `rows` (indices into self.ids): (len(rows), 3)."""
+        Returns (acceleration (R, 3), slot h_i (R, 3), slot velocity (R, 3))."""
         m = self.mission
-        cfg = m.cfg
-        c_pos, c_vel, c_acc = m.path.at(m.tau_s(t_s, self.t_go_s))
-        h_pos, h_vel, h_acc = formation_reference(m.offsets_ned_m, c_pos, c_vel, c_acc)
-
+        cfg, sw, a, kern = m.cfg, m.cfg.swarm, m.cfg.apf, self.kernels
+        n_rows = len(rows)
         ids = self.ids[rows]
-        pos, vel, phase = self._merged_view(own, swarm)
-        known = np.all(np.isfinite(pos), axis=1) & np.all(np.isfinite(vel), axis=1)
-        # A neighbour takes part in consensus once it is flying in formation; until
-        # then its (unknown or tumbling) state would only disturb its followers.
-        in_formation = known & IN_FORMATION[phase]
-        weights = m.weights * in_formation[None, :]
-        # Saturate every vehicle's slot error at formation_error_max_m by sliding
-        # its reference towards it; inside that radius this is eq. 27 exactly.
-        err = np.nan_to_num(pos - h_pos)
-        norm = _norm_rows(err)[:, None]
-        excess = np.maximum(0.0, 1.0 - cfg.formation_error_max_m / np.maximum(norm, 1e-12))
-        h_sat = h_pos + excess * err
-        u1 = consensus_accel(pos, vel, h_sat, h_vel, h_acc, weights, cfg.consensus, rows=ids)
+        p, v = own.pos_ned_m[rows], own.vel_ned_mps[rows]
+        vp, vv, vage = view.pos_ned_m[rows], view.vel_ned_mps[rows], age[rows]
+        vphase = view.phase[rows]
+        heard = vage < np.inf
+        known = ~np.isnan(np.einsum("rjk,rjk->rj", vp, vv))  # position and velocity both finite
+        trusted = (vage <= sw.stale_after_s) & ((view.flags[rows] & FLAG_OWN_VALID) != 0) & known
+        r_idx = np.arange(n_rows)
+        trusted[r_idx, ids] = False  # the own vehicle comes first hand
+        # Predict every fresh neighbour to now (the link delivers states tens of ms old).
+        pred = vp + vv * np.where(trusted, vage, 0.0)[..., None]
+        airborne = vphase >= _STABILISE
 
-        # Repulsion from every airborne vehicle heard within the sensing radius
-        # (stabilising ones included), whatever the consensus topology.
-        airborne = known & (phase >= _STABILISE)
-        others = np.where(airborne[:, None], pos, np.nan)
-        a = cfg.apf
-        u2 = apf.vehicle_repulsion(
-            pos[ids], others, a.vehicle_gain_mps2, a.vehicle_influence_m, a.sensing_radius_m, a.kappa,
-            self_index=ids,
-        )
-        if len(m.obstacle_radii_m):
-            u2 = u2 + apf.obstacle_repulsion(
-                pos[ids], m.obstacle_centres_ned_m, m.obstacle_radii_m, a.obstacle_gain_mps2,
-                a.obstacle_influence_m, a.kappa,
-            )
-        return apf.combined_accel(u1, u2, cfg.consensus_accel_max_mps2, cfg.total_accel_max_mps2), h_pos[ids], h_vel[ids]
+        # Rows holding different transit starts fly different references; usually one group.
+        go = self.t_go_s[rows]
+        groups = [go[0]] if n_rows == 1 or np.all(go == go[0]) or np.all(np.isnan(go)) else \
+            list(np.unique(np.where(np.isnan(go), -np.inf, go)))
+        usable = trusted & IN_FORMATION[vphase]
+        if len(groups) == 1:
+            u1, h_pos_rows, h_vel_rows = self._consensus(t_s, groups[0], p, v, ids, pred, vv, usable)
+        else:
+            u1, h_pos_rows, h_vel_rows = np.empty((n_rows, 3)), np.empty((n_rows, 3)), np.empty((n_rows, 3))
+            for g in groups:
+                sel = np.flatnonzero((go == g) | (np.isnan(go) & (g == -np.inf)))
+                u1[sel], h_pos_rows[sel], h_vel_rows[sel] = self._consensus(
+                    t_s, math.nan if g == -np.inf else g, p[sel], v[sel], ids[sel], pred[sel], vv[sel], usable[sel])
 
-    def step(self, t_s: float, own: OwnState, swarm: SwarmView) -> AgentOutput:
+        u2 = np.zeros((n_rows, 3))
+        cutoff = min(a.sensing_radius_m, a.vehicle_influence_m)
+        d = pred - p[:, None, :]
+        near = np.einsum("rjk,rjk->rj", d, d) < cutoff * cutoff  # cheap prefilter for the loop
+        kern.pair_repulsion_rows(p, pred, trusted & airborne & near, ids, a.vehicle_gain_mps2, a.vehicle_influence_m,
+                                 cutoff, a.kappa, u2)
+        ghost = heard & ~trusted & airborne & ~np.isnan(vp[..., 0])
+        ghost[r_idx, ids] = False
+        if ghost.any():
+            top, bottom = self._ghost_columns(vp, vv)
+            kern.segment_repulsion_rows(p, top, bottom, np.full(ghost.shape, sw.ghost_radius_m), ghost,
+                                        a.vehicle_gain_mps2, a.vehicle_influence_m, a.kappa, u2)
+        if self._n_obstacles:
+            kern.segment_repulsion_rows(p, self._obs_ends[:n_rows], self._obs_ends[:n_rows], self._obs_r[:n_rows],
+                                        self._obs_use[:n_rows], a.obstacle_gain_mps2, a.obstacle_influence_m, a.kappa,
+                                        u2)
+        acc = np.empty((n_rows, 3))
+        kern.clip_sum_rows(u1, u2, cfg.consensus_accel_max_mps2, cfg.total_accel_max_mps2, acc)
+        return acc, h_pos_rows, h_vel_rows
+
+    def _consensus(self, t_s, t_go_s, p, v, ids, pred, vv, usable):
+        """Eq. 27 for rows sharing one transit start: (u1, slot, slot velocity), each (R, 3)."""
+        m = self.mission
+        c_pos, c_vel, c_acc = m.path.at(m.tau_s(t_s, t_go_s))
+        h_pos = m.offsets_ned_m + c_pos
+        h_vel, h_acc = self._h_vel, self._h_acc  # every slot moves with the centre
+        h_vel[:] = c_vel
+        h_acc[:] = c_acc
+        out = np.empty((len(ids), 3))
+        bad = self.kernels.consensus_rows(p, v, ids, pred, vv, usable, h_pos, h_vel, h_acc, m.weights, m.neighbours,
+                                          self._k, m.cfg.formation_error_max_m, out)
+        if bad >= 0:  # excluded by the checks of _formation_accel; never fly on it
+            out[:] = np.nan
+        return out, h_pos[ids], h_vel[ids]
+
+    def _ghost_columns(self, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Where a silent vehicle can be: its autopilot brakes to Hold (PX4 offboard loss,
+        ArduPilot GUID_TIMEOUT) and later lands straight down. So the column from its
+        braking point down to the ground. (..., 3) arrays in, two (..., 3) ends out."""
+        sw = self.mission.cfg.swarm
+        speed = _norm_rows(vel)[..., None]
+        top = pos + np.nan_to_num(vel * speed / (2.0 * sw.ghost_brake_mps2))
+        bottom = top.copy()
+        ground = self.mission.cfg.ground_z_m
+        bottom[..., 2] = np.maximum(top[..., 2], top[..., 2] + GHOST_COLUMN_M if ground is None else ground)
+        return top, bottom
+
+    def step(self, t_s: float, own: OwnState, view: SwarmView) -> AgentOutput:
         """Advance phases and compute setpoints for the agent's own vehicles.
 
         Args:
-            t_s: mission time, s (the same clock for the whole swarm).
+            t_s: mission time, s (one time base for the whole swarm, e.g. GNSS time).
             own: states of this agent's vehicles, rows in the order of `ids`.
-            swarm: the latest known states of all N vehicles (own rows included or not).
+            view: receiver row r = what own vehicle r has heard (n rows, N vehicles).
         Returns:
-            AgentOutput with n setpoint rows.
+            AgentOutput with n rows. Never raises on bad data: a NaN or stale own state
+            gives a stop (zero velocity) instead of a formation setpoint.
         """
-        self._advance_phases(t_s, own, swarm)
+        m = self.mission
+        cfg = m.cfg
         n = len(self.ids)
-        sp = FleetSetpoint.empty(n)
+        q = own.att_q_wxyz
+        # One sum per row is finite iff every term is (a NaN or an inf anywhere poisons it).
+        valid = np.isfinite(own.pos_ned_m.sum(axis=1) + own.vel_ned_mps.sum(axis=1) + q.sum(axis=1)) & (
+            t_s - own.stamp_s <= cfg.swarm.own_timeout_s)
+        qn2 = np.maximum(np.einsum("ij,ij->i", q, q), 1e-300)  # a zero quaternion gives 1 - 0: caught by valid
+        cos_tilt = 1.0 - 2.0 * (q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2]) / qn2  # R[2, 2] of the attitude
+        age = view.age_s(t_s)
+        self._advance_phases(t_s, own, valid, cos_tilt)
         phase = self.phase
+        sp = FleetSetpoint.empty(n)
+        slot = np.full((n, 3), np.nan)
 
-        stab = phase == _STABILISE
-        sp.vel_ned_mps[stab] = 0.0  # brake and level; yaw NaN holds the current heading
-
-        rows = np.flatnonzero(IN_FORMATION[phase])
+        rows = np.flatnonzero(IN_FORMATION[phase] & valid)
         if len(rows):
-            acc, h_pos, h_vel = self._formation_accel(t_s, rows, own, swarm)
+            acc, h_pos, h_vel = self._formation_accel(t_s, rows, own, view, age)
+            p, v = own.pos_ned_m[rows], own.vel_ned_mps[rows]
             sp.acc_ned_mps2[rows] = acc
-            sp.yaw_rad[rows] = self.mission.yaw_rad
-            ph = self.mission.cfg.phases
-            near = (_norm_rows(own.pos_ned_m[rows] - h_pos) < ph.assembled_pos_m) & (
-                _norm_rows(own.vel_ned_mps[rows] - h_vel) < ph.assembled_speed_mps
-            )
+            if cfg.setpoint.kind == "state":
+                # The state this acceleration leads to one setpoint period ahead: if the
+                # stream stops, the autopilot holds near where the vehicle was heading.
+                lead = cfg.setpoint.lead_s
+                sp.pos_ned_m[rows] = p + v * lead + 0.5 * acc * lead * lead
+                sp.vel_ned_mps[rows] = v + acc * lead
+            sp.yaw_rad[rows] = m.yaw_rad
+            slot[rows] = h_pos
+            ph = cfg.phases
+            near = (_norm_rows(p - h_pos) < ph.assembled_pos_m) & (_norm_rows(v - h_vel) < ph.assembled_speed_mps)
             self.assembled[rows[near]] = True
 
-        land = phase == _LAND
-        sp.vel_ned_mps[land] = [0.0, 0.0, self.mission.cfg.phases.land_speed_mps]
-        sp.yaw_rad[land] = self.mission.yaw_rad
-        return AgentOutput(sp, phase.copy(), self.assembled.copy(), self.t_go_s)
+        # After this tick's assembled flags: a vehicle that reaches its slot now counts now.
+        self._agree_t_go(t_s, view, age)
+        hold = ~valid & (phase >= _ASSEMBLE)
+        sp.vel_ned_mps[hold] = 0.0  # a stop, flown on the autopilot's own estimate
+        land = valid & (phase == _LAND)
+        sp.vel_ned_mps[land] = [0.0, 0.0, cfg.phases.land_speed_mps]
+        sp.yaw_rad[land] = m.yaw_rad
+        flags = (np.where(self.assembled, FLAG_ASSEMBLED, 0) | np.where(valid, FLAG_OWN_VALID, 0)
+                 | np.where(own.ready, FLAG_READY, 0)).astype(np.uint8)
+        published = SwarmStates(self.ids.copy(), np.asarray(own.stamp_s, float).copy(), own.pos_ned_m.copy(),
+                                own.vel_ned_mps.copy(), q.copy(), phase.copy(), flags, self.t_go_s.copy())
+        return AgentOutput(sp, phase.copy(), self.assembled.copy(), self.t_go_s.copy(), valid, slot, published)

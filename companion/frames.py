@@ -12,11 +12,17 @@ Conventions (used everywhere in swarmdrop):
     * Euler angles are ZYX (yaw psi about e3, then pitch theta, then roll phi):
       ``R = Rz(psi) @ Ry(theta) @ Rx(phi)``, as MAVLink ATTITUDE reports them.
 
+    * Geodetic <-> local NED: WGS-84 via pymap3d, local NED being the tangent plane at
+      an origin (lat, lon, alt). Altitudes are taken as heights above the ellipsoid on
+      both sides; since every vehicle and the mission use the same convention (MAVLink's
+      AMSL altitudes), the geoid offset cancels out.
+
 All functions are vectorised over leading axes and are pure numpy.
 """
 from __future__ import annotations
 
 import numpy as np
+import pymap3d
 
 
 def quat_wxyz_to_rot(q_wxyz: np.ndarray) -> np.ndarray:
@@ -52,7 +58,9 @@ def quat_wxyz_to_rot(q_wxyz: np.ndarray) -> np.ndarray:
 def rot_to_quat_wxyz(rot: np.ndarray) -> np.ndarray:
     """Hamilton quaternion [w, x, y, z] of a rotation matrix, with w >= 0.
 
-    Uses Shepperd's method (branch on the largest diagonal term) for accuracy.
+    Shepperd's method: of the four algebraically equal formulas, each row uses the
+    one whose divisor (from the largest of trace and diagonal) is largest, so
+    accuracy holds near 180 degrees too. Branch-free over rows.
 
     Args:
         rot: (..., 3, 3) rotation matrix (body -> NED).
@@ -62,31 +70,20 @@ def rot_to_quat_wxyz(rot: np.ndarray) -> np.ndarray:
     r = np.asarray(rot, dtype=float)
     shape = r.shape[:-2]
     r = r.reshape(-1, 3, 3)
-    tr = np.trace(r, axis1=1, axis2=2)
-    cand = np.stack([tr, r[:, 0, 0], r[:, 1, 1], r[:, 2, 2]], axis=1)
-    k = np.argmax(cand, axis=1)
-    q = np.empty((r.shape[0], 4))
-    for case in range(4):
-        m = k == case
-        if not np.any(m):
-            continue
-        a = r[m]
-        if case == 0:
-            s = 2.0 * np.sqrt(1.0 + tr[m])
-            q[m] = np.stack([0.25 * s, (a[:, 2, 1] - a[:, 1, 2]) / s,
-                             (a[:, 0, 2] - a[:, 2, 0]) / s, (a[:, 1, 0] - a[:, 0, 1]) / s], axis=1)
-        elif case == 1:
-            s = 2.0 * np.sqrt(_nonneg(1.0 + a[:, 0, 0] - a[:, 1, 1] - a[:, 2, 2]))
-            q[m] = np.stack([(a[:, 2, 1] - a[:, 1, 2]) / s, 0.25 * s,
-                             (a[:, 0, 1] + a[:, 1, 0]) / s, (a[:, 0, 2] + a[:, 2, 0]) / s], axis=1)
-        elif case == 2:
-            s = 2.0 * np.sqrt(_nonneg(1.0 + a[:, 1, 1] - a[:, 0, 0] - a[:, 2, 2]))
-            q[m] = np.stack([(a[:, 0, 2] - a[:, 2, 0]) / s, (a[:, 0, 1] + a[:, 1, 0]) / s,
-                             0.25 * s, (a[:, 1, 2] + a[:, 2, 1]) / s], axis=1)
-        else:
-            s = 2.0 * np.sqrt(_nonneg(1.0 + a[:, 2, 2] - a[:, 0, 0] - a[:, 1, 1]))
-            q[m] = np.stack([(a[:, 1, 0] - a[:, 0, 1]) / s, (a[:, 0, 2] + a[:, 2, 0]) / s,
-                             (a[:, 1, 2] + a[:, 2, 1]) / s, 0.25 * s], axis=1)
+    r00, r01, r02 = r[:, 0, 0], r[:, 0, 1], r[:, 0, 2]
+    r10, r11, r12 = r[:, 1, 0], r[:, 1, 1], r[:, 1, 2]
+    r20, r21, r22 = r[:, 2, 0], r[:, 2, 1], r[:, 2, 2]
+    # 4 * (w^2, x^2, y^2, z^2), each from one diagonal combination
+    sq = np.stack([1.0 + r00 + r11 + r22, 1.0 + r00 - r11 - r22, 1.0 - r00 + r11 - r22, 1.0 - r00 - r11 + r22])
+    k = np.argmax(sq, axis=0)
+    s = 2.0 * np.sqrt(_nonneg(np.take_along_axis(sq, k[None], axis=0)[0]))  # 4 * |largest component|
+    a, b, c = r21 - r12, r02 - r20, r10 - r01  # 4 w x, 4 w y, 4 w z
+    d, e, f = r01 + r10, r02 + r20, r12 + r21  # 4 x y, 4 x z, 4 y z
+    cand = np.array([[0.25 * s, a / s, b / s, c / s],
+                     [a / s, 0.25 * s, d / s, e / s],
+                     [b / s, d / s, 0.25 * s, f / s],
+                     [c / s, e / s, f / s, 0.25 * s]])  # (4 cases, 4 components, rows)
+    q = cand[k, :, np.arange(len(k))]
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q[q[:, 0] < 0] *= -1.0
     return q.reshape(shape + (4,))
@@ -167,6 +164,30 @@ def wrap_pi(angle_rad):
     return (np.asarray(angle_rad, float) + np.pi) % (2.0 * np.pi) - np.pi
 
 
+def rotvec_to_rot(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation matrices of rotation vectors (axis * angle, rad) by Rodrigues' formula.
+
+    exp(hat(w)) = I + sin(a)/a hat(w) + (1 - cos a)/a^2 hat(w)^2, a = |w|, with Taylor
+    coefficients below a = 1e-4 so that tiny rotations stay accurate to round-off.
+
+    Args:
+        rotvec: (..., 3) rotation vectors, rad.
+    Returns:
+        (..., 3, 3) rotation matrices.
+    """
+    w = np.asarray(rotvec, float)
+    a2 = np.sum(w * w, axis=-1)[..., None, None]
+    small = a2 < 1e-8
+    a = np.sqrt(np.where(small, 1.0, a2))
+    s = np.where(small, 1.0 - a2 / 6.0, np.sin(a) / a)
+    c = np.where(small, 0.5 - a2 / 24.0, (1.0 - np.cos(a)) / np.where(small, 1.0, a2))
+    h = np.zeros(w.shape[:-1] + (3, 3))
+    h[..., 0, 1], h[..., 0, 2] = -w[..., 2], w[..., 1]
+    h[..., 1, 0], h[..., 1, 2] = w[..., 2], -w[..., 0]
+    h[..., 2, 0], h[..., 2, 1] = -w[..., 1], w[..., 0]
+    return np.eye(3) + s * h + c * (h @ h)
+
+
 def integrate_quat_body_rates(q_wxyz: np.ndarray, omega_body_radps: np.ndarray, dt_s: float) -> np.ndarray:
     """Attitude after rotating at constant body rates for dt_s: q <- q * exp(omega dt).
 
@@ -177,7 +198,32 @@ def integrate_quat_body_rates(q_wxyz: np.ndarray, omega_body_radps: np.ndarray, 
     Returns:
         (N, 4) unit quaternions [w, x, y, z], w >= 0.
     """
-    from companion.control.so3 import exp_so3_np  # so3 is pure math; import here to keep frames light
-
-    rot = quat_wxyz_to_rot(q_wxyz) @ exp_so3_np(np.asarray(omega_body_radps, float) * dt_s)
+    rot = quat_wxyz_to_rot(q_wxyz) @ rotvec_to_rot(np.asarray(omega_body_radps, float) * dt_s)
     return rot_to_quat_wxyz(rot)
+
+
+def geodetic_to_ned(lat_deg, lon_deg, alt_m, origin_lat_deg: float, origin_lon_deg: float,
+                    origin_alt_m: float) -> np.ndarray:
+    """WGS-84 point(s) -> NED metres in the tangent frame at the origin.
+
+    Args:
+        lat_deg, lon_deg, alt_m: broadcastable arrays (degrees, degrees, metres).
+        origin_*: the local frame's origin.
+    Returns:
+        (..., 3) north, east, down, m.
+    """
+    n, e, d = pymap3d.geodetic2ned(lat_deg, lon_deg, alt_m, origin_lat_deg, origin_lon_deg, origin_alt_m)
+    return np.stack(np.broadcast_arrays(n, e, d), axis=-1).astype(float)
+
+
+def ned_to_geodetic(ned_m: np.ndarray, origin_lat_deg: float, origin_lon_deg: float,
+                    origin_alt_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """NED metres in the tangent frame at the origin -> WGS-84 (lat_deg, lon_deg, alt_m).
+
+    Args:
+        ned_m: (..., 3).
+    """
+    p = np.asarray(ned_m, float)
+    lat, lon, alt = pymap3d.ned2geodetic(p[..., 0], p[..., 1], p[..., 2], origin_lat_deg, origin_lon_deg,
+                                         origin_alt_m)
+    return np.asarray(lat, float), np.asarray(lon, float), np.asarray(alt, float)

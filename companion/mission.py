@@ -75,11 +75,56 @@ class PhaseConfig:
     assembled_pos_m: float = Field(0.5, gt=0)
     assembled_speed_mps: float = Field(0.3, gt=0)
     go_quantum_s: float = Field(1.0, gt=0)
-    """Transit starts at the next multiple of this after all vehicles have assembled,
-    so agents that notice a tick apart still agree on one start time."""
+    """Transit-start proposals are rounded up to a multiple of this (round numbers in logs;
+    the agreement itself is the earliest proposal heard, docs/swarm.md)."""
     land_after_hover_s: float | None = Field(None, ge=0)
     """Land this long after hover begins; None = hold station."""
     land_speed_mps: float = Field(0.7, gt=0)
+
+
+@dataclass(config=STRICT)
+class SwarmConfig:
+    """The swarm contract on a lossy, delayed link (docs/swarm.md)."""
+
+    rate_hz: float = Field(10.0, gt=0, le=100)
+    """How often every agent publishes its own state, Hz."""
+    stale_after_s: float = Field(0.5, gt=0)
+    """A neighbour state older than this leaves consensus and is avoided as a 'ghost'
+    (the column its autopilot can hold and land in) instead of as a vehicle."""
+    peer_timeout_s: float = Field(3.0, gt=0)
+    """A vehicle unheard for this long no longer blocks the transit start."""
+    go_margin_s: float = Field(2.0, ge=0)
+    """A transit-start proposal lies this far ahead, so that it reaches everyone
+    (link delay and relays) before it is due."""
+    go_wait_s: float = Field(10.0, ge=0)
+    """With some vehicles of the mission never heard or silent, the others start
+    once everything they hear has been assembled for this long."""
+    own_timeout_s: float = Field(0.5, gt=0)
+    """The agent's own state older than this counts as invalid: it commands a stop."""
+    ghost_radius_m: float = Field(1.0, gt=0)
+    """Radius of a silent vehicle's column (hold error of its autopilot plus its size)."""
+    ghost_brake_mps2: float = Field(3.0, gt=0)
+    """Deceleration assumed for a silent vehicle's autopilot when it brakes to Hold."""
+
+
+@dataclass(config=STRICT)
+class SetpointConfig:
+    """What the agent sends in formation phases (docs/agent.md)."""
+
+    kind: Literal["state", "acceleration"] = "state"
+    """"state": position, velocity and acceleration that agree (the state eq. 31's
+    acceleration leads to lead_s ahead); "acceleration": the acceleration alone."""
+    lead_s: float = Field(0.02, ge=0)
+    """Horizon of the state setpoint; the setpoint period."""
+
+
+@dataclass(config=STRICT)
+class GeodeticOrigin:
+    """The geodetic point at which the mission NED frame has its origin (WGS-84)."""
+
+    lat_deg: float = Field(ge=-90, le=90)
+    lon_deg: float = Field(ge=-180, le=180)
+    alt_amsl_m: float = Field(ge=-500, le=10000)
 
 
 @dataclass(config=STRICT)
@@ -104,6 +149,19 @@ class MissionConfig:
     consensus_accel_max_mps2: float = Field(3.0, gt=0)
     total_accel_max_mps2: float = Field(8.0, gt=0)
     phases: PhaseConfig = PhaseConfig()
+    swarm: SwarmConfig = SwarmConfig()
+    setpoint: SetpointConfig = SetpointConfig()
+    launch: Literal["carrier", "ground"] = "carrier"
+    """How the vehicles get airborne: thrown from the carrier (the autopilot recovers
+    them), or armed and taken off from the ground by their agents."""
+    takeoff_alt_m: float = Field(5.0, gt=0.5, le=500)
+    """Ground launch: climb this far above home before assembling."""
+    origin: GeodeticOrigin | None = None
+    """Geodetic origin of the mission frame; every vehicle's local frame is converted
+    to it. Needed by `swarmdrop agent`; the headless runner flies in the mission frame."""
+    ground_z_m: float | None = 0.0
+    """Ground height in the mission frame (NED z, m): where a silent vehicle's column
+    ends. None = unknown: the column then reaches 100 m below its last position."""
 
     @model_validator(mode="after")
     def _need_waypoint(self):
@@ -197,6 +255,9 @@ class Mission:
         self.n = n
         self.offsets_ned_m = formation_offsets_ned_m(cfg.formation, n)
         self.weights = _build_topology(cfg.topology, self.offsets_ned_m)
+        self.neighbours = topology.neighbour_table(self.weights)
+        """(N, K) indices of the vehicles each one hears (-1 padded): the consensus loop
+        visits only these, not all N columns of the weight matrix."""
         self.closed_loop_eigenvalues = check_stability(self.weights, cfg.consensus)
         self.path = CentrePath(
             np.asarray(cfg.waypoints_ned_m, dtype=float),

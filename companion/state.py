@@ -84,12 +84,21 @@ class FleetSetpoint:
 
     @classmethod
     def empty(cls, n: int) -> "FleetSetpoint":
-        """N setpoints with nothing commanded (all NaN)."""
-        return cls(_nan(n, 3), _nan(n, 3), _nan(n, 3), _nan(n), _nan(n), _nan(n, 4), _nan(n), _nan(n, 3))
+        """N setpoints with nothing commanded (all NaN).
+
+        The fields are views of one (N, 19) block: one allocation instead of eight
+        (this runs every agent tick on a small computer).
+        """
+        b = np.full((n, 19), np.nan)
+        return cls(b[:, 0:3], b[:, 3:6], b[:, 6:9], b[:, 9], b[:, 10], b[:, 11:15], b[:, 15], b[:, 16:19])
 
     @property
     def n(self) -> int:
         return self.pos_ned_m.shape[0]
+
+    def select(self, idx) -> "FleetSetpoint":
+        """A copy holding only the vehicles selected by idx (index array or mask)."""
+        return FleetSetpoint(*(np.array(getattr(self, f)[idx]) for f in self.__dataclass_fields__))
 
     def assign(self, idx, other: "FleetSetpoint") -> None:
         """Overwrite the vehicles selected by idx with the rows of other."""

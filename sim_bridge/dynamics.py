@@ -28,6 +28,11 @@ from numba import njit
 from companion.control import so3
 from companion.params import GRAVITY_MPS2, VehicleParams
 from companion.state import FleetState
+from sim_bridge.jit import compiled
+
+# The SO(3) kernels, compiled (companion.control.kernel): called from the njit cores below.
+add, cross, exp_so3, load_mat, matmul, mul, scale, store_mat = (
+    compiled(getattr(so3, name)) for name in ("add", "cross", "exp_so3", "load_mat", "matmul", "mul", "scale", "store_mat"))
 
 VP_MASS, VP_G, VP_JXX, VP_JYY, VP_JZZ, VP_ARM, VP_KF, VP_CTF = 0, 1, 2, 3, 4, 5, 6, 7
 VP_QMIN, VP_QMAX, VP_TAU, VP_DRAG = 8, 9, 10, 11
@@ -112,8 +117,8 @@ def _motor(q0, qc, kf, alpha, c1, c2):
 
 @njit(cache=True, inline="always")
 def _omega_dot(w, m, j):
-    jw = so3.mul(j, w)
-    g = so3.cross(w, jw)
+    jw = mul(j, w)
+    g = cross(w, jw)
     return ((m[0] - g[0]) / j[0], (m[1] - g[1]) / j[1], (m[2] - g[2]) / j[2])
 
 
@@ -136,19 +141,19 @@ def rigid_body_step(pos, vel, rot, om, q, q_cmd, vp, dt, mot, wind, ground_z):
     j = (vp[VP_JXX], vp[VP_JYY], vp[VP_JZZ])
     h = dt
     k1 = _omega_dot(om, m, j)
-    k2 = _omega_dot(so3.add(om, so3.scale(k1, 0.5 * h)), m, j)
-    k3 = _omega_dot(so3.add(om, so3.scale(k2, 0.5 * h)), m, j)
-    k4 = _omega_dot(so3.add(om, so3.scale(k3, h)), m, j)
+    k2 = _omega_dot(add(om, scale(k1, 0.5 * h)), m, j)
+    k3 = _omega_dot(add(om, scale(k2, 0.5 * h)), m, j)
+    k4 = _omega_dot(add(om, scale(k3, h)), m, j)
     om1 = (om[0] + h / 6.0 * (k1[0] + 2.0 * k2[0] + 2.0 * k3[0] + k4[0]),
            om[1] + h / 6.0 * (k1[1] + 2.0 * k2[1] + 2.0 * k3[1] + k4[1]),
            om[2] + h / 6.0 * (k1[2] + 2.0 * k2[2] + 2.0 * k3[2] + k4[2]))
     wd1 = _omega_dot(om1, m, j)
-    cr = so3.cross(om, om1)
+    cr = cross(om, om1)
     h12 = h * h / 12.0
     theta = (0.5 * h * (om[0] + om1[0]) + h12 * (k1[0] - wd1[0]) + h12 * cr[0],
              0.5 * h * (om[1] + om1[1]) + h12 * (k1[1] - wd1[1]) + h12 * cr[1],
              0.5 * h * (om[2] + om1[2]) + h12 * (k1[2] - wd1[2]) + h12 * cr[2])
-    rot1 = so3.matmul(rot, so3.exp_so3(theta))
+    rot1 = matmul(rot, exp_so3(theta))
     # translation
     mass, g, cd = vp[VP_MASS], vp[VP_G], vp[VP_DRAG]
     fm = f / mass
@@ -176,7 +181,7 @@ def _open_loop(pos, vel, rot, om, rotor, q_cmd, vp, dt, mot, wind, ground_z, n_s
     for i in range(pos.shape[0]):
         p = (pos[i, 0], pos[i, 1], pos[i, 2])
         v = (vel[i, 0], vel[i, 1], vel[i, 2])
-        r = so3.load_mat(rot, i)
+        r = load_mat(rot, i)
         w = (om[i, 0], om[i, 1], om[i, 2])
         q = (rotor[i, 0], rotor[i, 1], rotor[i, 2], rotor[i, 3])
         qc = (q_cmd[i, 0], q_cmd[i, 1], q_cmd[i, 2], q_cmd[i, 3])
@@ -185,7 +190,7 @@ def _open_loop(pos, vel, rot, om, rotor, q_cmd, vp, dt, mot, wind, ground_z, n_s
             p, v, r, w, q = rigid_body_step(p, v, r, w, q, qc, vp, dt, mot, wd, ground_z)
         pos[i, 0], pos[i, 1], pos[i, 2] = p
         vel[i, 0], vel[i, 1], vel[i, 2] = v
-        so3.store_mat(rot, i, r)
+        store_mat(rot, i, r)
         om[i, 0], om[i, 1], om[i, 2] = w
         rotor[i, 0], rotor[i, 1], rotor[i, 2], rotor[i, 3] = q
 

@@ -7,7 +7,7 @@ import numpy as np
 
 from companion import frames
 from companion.agent import IN_FORMATION, Phase
-from sim_bridge.headless import RunResult
+from sim_bridge.record import RunResult
 
 
 def _f(x) -> float | None:
@@ -15,13 +15,16 @@ def _f(x) -> float | None:
 
 
 def formation_deviation(result: RunResult) -> tuple[np.ndarray, np.ndarray]:
-    """Max over formation-phase vehicles of |p_i - h_i(t)| per log sample.
+    """Max over formation-phase vehicles of |p_i - h_i(t)| per log sample. Vehicles whose
+    agent had fallen silent (a fleet run with a crashed companion) are left out.
 
     Returns: t_s (T,), max_dev_m (T,) (NaN where no vehicle is in formation).
     """
     log = result.log
     dev = np.linalg.norm(log["pos_ned_m"] - log["slot_ned_m"], axis=2)
     in_form = IN_FORMATION[log["phase"]]
+    if "counted" in log:
+        in_form = in_form & log["counted"]
     masked = np.where(in_form, dev, -np.inf).max(axis=1)
     return log["t_s"], np.where(np.isfinite(masked), masked, np.nan)
 
@@ -39,8 +42,9 @@ def stabilisation(result: RunResult) -> list[dict]:
         t_rel = result.release_s[v]
         t_asm = result.phase_entry_s[v, Phase.ASSEMBLE]
         entry = {"vehicle": v + 1, "release_s": float(t_rel), "stabilised": not math.isnan(t_asm)}
-        if entry["stabilised"]:
-            window = np.flatnonzero((t >= t_rel - 1e-9) & (t <= t_asm + 1e-9))
+        window = np.flatnonzero((t >= t_rel - 1e-9) & (t <= t_asm + 1e-9)) if entry["stabilised"] else []
+        entry["stabilised"] = bool(len(window))  # (a vehicle never released has no window)
+        if len(window):
             bad = window[~calm[window, v]]
             k = window[0] if len(bad) == 0 else min(bad[-1] + 1, window[-1])
             disp = log["pos_ned_m"][k, v] - result.release_pos_ned_m[v]
@@ -82,7 +86,9 @@ def compute_metrics(result: RunResult, launch_study: dict | None) -> dict:
             "all_assembled_s": _f(result.t_all_assembled_s),
             "assembly_time_after_last_release_s": _f(result.t_all_assembled_s - result.release_s.max()),
             "transit_start_s": _f(t_go),
+            "transit_start_spread_s": _f(result.t_go_spread_s),
         },
+        "link": result.link,
         "formation_deviation": {
             "final_max_m": final_dev,
             "max_during_transit_m": _f(np.nanmax(dev[transit])) if transit.any() else None,

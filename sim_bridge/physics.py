@@ -16,12 +16,15 @@ from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT
 
-from companion.control import so3
-from companion.control.geometric import geometric_core, pack_control_params, pack_setpoint
-from companion.control.pid import pid_core
+from companion.control import geometric, pid, so3
+from companion.control.geometric import pack_control_params, pack_setpoint
 from companion.params import GRAVITY_MPS2, InnerLoopConfig, VehicleParams
 from companion.state import FleetSetpoint, FleetState
 from sim_bridge.dynamics import allocate, motor_coeffs, pack_vehicle_params, rigid_body_step
+from sim_bridge.jit import compiled
+
+load_mat, store_mat = compiled(so3.load_mat), compiled(so3.store_mat)
+geometric_core, pid_core = compiled(geometric.geometric_core), compiled(pid.pid_core)
 
 CTRL_GEOMETRIC, CTRL_PID = 0, 1
 
@@ -83,7 +86,7 @@ def _physics_loop(n_steps, active, pos, vel, rot, om, rotor, integ, sp, cprm, vp
             continue
         p = (pos[i, 0], pos[i, 1], pos[i, 2])
         v = (vel[i, 0], vel[i, 1], vel[i, 2])
-        r = so3.load_mat(rot, i)
+        r = load_mat(rot, i)
         w = (om[i, 0], om[i, 1], om[i, 2])
         q = (rotor[i, 0], rotor[i, 1], rotor[i, 2], rotor[i, 3])
         xi = (integ[i, 0], integ[i, 1], integ[i, 2], integ[i, 3], integ[i, 4], integ[i, 5])
@@ -99,7 +102,7 @@ def _physics_loop(n_steps, active, pos, vel, rot, om, rotor, integ, sp, cprm, vp
             p, v, r, w, q = rigid_body_step(p, v, r, w, q, qc, vprm, dt, mot, wd, ground_z)
         pos[i, 0], pos[i, 1], pos[i, 2] = p
         vel[i, 0], vel[i, 1], vel[i, 2] = v
-        so3.store_mat(rot, i, r)
+        store_mat(rot, i, r)
         om[i, 0], om[i, 1], om[i, 2] = w
         rotor[i, 0], rotor[i, 1], rotor[i, 2], rotor[i, 3] = q
         for k in range(6):
@@ -141,6 +144,19 @@ class Physics:
         self.gust_ned_mps = self.rng.normal(0.0, sd, 3) if sd > 0 else np.zeros(3)
         self._phi = math.exp(-self.dt_s / self.wind.gust_tau_s)
         self._sig = sd * math.sqrt(1.0 - self._phi ** 2)
+
+    def warm_up(self) -> None:
+        """Compile (or load from numba's cache) the stepper now, on a scratch vehicle, so
+        that the first real step does not stall a real-time loop for seconds."""
+        state = hover_state(1, self.vehicle)
+        sp = FleetSetpoint.empty(1)
+        sp.pos_ned_m[...] = 0.0
+        rng, gust = self.rng, self.gust_ned_mps.copy()
+        self.rng = np.random.default_rng(0)  # the real run's gust sequence stays untouched
+        try:
+            self.step(state, sp, 1)
+        finally:
+            self.rng, self.gust_ned_mps = rng, gust
 
     def _wind_sequence(self, n_steps: int) -> np.ndarray:
         steady = np.asarray(self.wind.steady_ned_mps, float)

@@ -10,6 +10,7 @@ from companion.mission import MissionConfig
 from companion.params import InnerLoopConfig, VehicleParams
 from sim_bridge.carrier import CarrierConfig
 from sim_bridge.physics import WindConfig
+from sim_bridge.transport import LinkConfig
 
 
 @dataclass(config=STRICT)
@@ -75,6 +76,8 @@ class ScenarioConfig:
     safety: SafetyConfig = SafetyConfig()
     output: OutputConfig = OutputConfig()
     launch_study: LaunchStudyConfig = LaunchStudyConfig()
+    link: LinkConfig = LinkConfig()
+    """How published neighbour states travel (headless: perfect or lossy)."""
 
     @model_validator(mode="after")
     def _rates_divide(self):

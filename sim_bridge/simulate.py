@@ -7,7 +7,8 @@ from pathlib import Path
 
 from companion.config import load_yaml
 from sim_bridge.figures import write_figures
-from sim_bridge.headless import run_scenario, save_log
+from sim_bridge.headless import run_scenario
+from sim_bridge.record import save_log
 from sim_bridge.launch_study import run_launch_study
 from sim_bridge.metrics import compute_metrics
 from sim_bridge.scenario import ScenarioConfig
@@ -41,6 +42,12 @@ def simulate(cfg: ScenarioConfig, out_dir: Path, progress: bool = True, figures:
     return metrics
 
 
+def _steps(per_s: float | None) -> str:
+    if not per_s:
+        return "n/a"
+    return f"{per_s / 1e6:.2f}M" if per_s >= 1e5 else f"{per_s / 1e3:.1f}k"
+
+
 def summary_lines(metrics: dict, out_dir: Path) -> list[str]:
     s, f, sep = metrics["stabilisation"], metrics["formation_deviation"], metrics["separation"]
     perf = metrics["performance"]
@@ -57,7 +64,7 @@ def summary_lines(metrics: dict, out_dir: Path) -> list[str]:
         f" t = {fmt(sep['min_pair_time_s'], ' s', 1)}); pairs < {sep['safety_distance_m']} m: {sep['pairs_below_safety_distance']}",
         f"  min obstacle clearance:{fmt(metrics['obstacles']['min_clearance_m'], ' m')}",
         f"  speed:                 {fmt(perf['real_time_factor'], 'x real time', 1)},"
-        f" {fmt((perf['vehicle_steps_per_s'] or 0) / 1e6, 'M vehicle-steps/s', 2)}",
+        f" {_steps(perf['vehicle_steps_per_s'])} vehicle-steps/s",
     ]
     ls = metrics.get("launch_study")
     if ls:

@@ -1,53 +1,135 @@
-"""The sans-IO Agent: phase transitions and one code path for one or many vehicles."""
+"""The sans-IO Agent: phases, the swarm contract on a lossy link, one code path for one or many."""
+import math
+
 import numpy as np
 import pytest
 
-from companion.agent import Agent, OwnState, Phase, SwarmView
+from companion.agent import Agent, OwnState, Phase
 from companion.mission import Mission, MissionConfig
+from companion.swarm import FLAG_ASSEMBLED, FLAG_OWN_VALID, SwarmStates, SwarmView
+
+Q_LEVEL = [1.0, 0.0, 0.0, 0.0]
 
 
 def _mission(n=4, **kw):
     return Mission(MissionConfig(n_vehicles=n, formation={"radius_m": 5.0}, waypoints_ned_m=((0.0, 0.0, -10.0),), **kw))
 
 
-def _own(pos, vel, tilt, released):
-    return OwnState(np.asarray(pos, float), np.asarray(vel, float), np.asarray(tilt, float), np.asarray(released))
+def _own(pos, vel, t, released=True, ready=True, q=None):
+    pos = np.atleast_2d(np.asarray(pos, float))
+    n = len(pos)
+    q = np.tile(Q_LEVEL, (n, 1)) if q is None else np.atleast_2d(np.asarray(q, float))
+    return OwnState(pos, np.atleast_2d(np.asarray(vel, float)), q, np.full(n, float(t)),
+                    np.broadcast_to(released, (n,)).copy(), np.broadcast_to(ready, (n,)).copy())
 
 
-def test_launch_to_stabilise_to_assemble_with_dwell():
+def _states(ids, t, pos, vel, phase=Phase.ASSEMBLE, flags=FLAG_OWN_VALID, t_go=math.nan):
+    ids = np.atleast_1d(ids)
+    k = len(ids)
+    return SwarmStates(ids, np.full(k, float(t)), np.atleast_2d(pos).astype(float), np.atleast_2d(vel).astype(float),
+                       np.tile(Q_LEVEL, (k, 1)), np.full(k, int(phase), np.int8), np.full(k, flags, np.uint8),
+                       np.full(k, t_go))
+
+
+def test_launch_then_autopilot_recovery_then_assemble_after_ready_and_dwell():
     m = _mission(1)
     a = Agent(m, np.array([0]))
-    sw = SwarmView.unknown(1)
-    out = a.step(0.0, _own([[0, 0, -10]], [[5, 0, 0]], [1.5], [False]), sw)
+    view = SwarmView.unknown(1, 1)
+    out = a.step(0.0, _own([0, 0, -10], [5, 0, 0], 0.0, released=False, ready=False), view)
     assert out.phase[0] == Phase.LAUNCH and np.all(np.isnan(out.setpoint.vel_ned_mps))
-    out = a.step(0.02, _own([[0, 0, -10]], [[5, 0, 0]], [1.5], [True]), sw)
+    out = a.step(0.02, _own([0, 0, -10], [5, 0, 0], 0.02, ready=False), view)
     assert out.phase[0] == Phase.STABILISE
-    np.testing.assert_array_equal(out.setpoint.vel_ned_mps[0], 0.0)  # brake
-    assert np.isnan(out.setpoint.acc_ned_mps2[0]).all()
-    calm = _own([[0, 0, -10]], [[0.1, 0, 0]], [np.radians(3)], [True])
+    # the autopilot owns the recovery: the agent commands nothing at all
+    for f in ("pos_ned_m", "vel_ned_mps", "acc_ned_mps2", "att_q_wxyz"):
+        assert np.isnan(getattr(out.setpoint, f)).all()
+    calm = dict(pos=[0, 0, -10], vel=[0.1, 0, 0])
+    assert a.step(1.0, _own(**calm, t=1.0, ready=False), view).phase[0] == Phase.STABILISE  # not ready yet
     dwell = m.cfg.phases.stable_dwell_s
-    for t in np.arange(0.04, 0.04 + dwell - 0.02, 0.02):
-        assert a.step(t, calm, sw).phase[0] == Phase.STABILISE
+    for t in np.arange(1.02, 1.02 + dwell - 0.02, 0.02):
+        assert a.step(t, _own(**calm, t=t), view).phase[0] == Phase.STABILISE
     # a disturbance restarts the dwell
-    assert a.step(1.0, _own([[0, 0, -10]], [[0.5, 0, 0]], [0.0], [True]), sw).phase[0] == Phase.STABILISE
-    assert a.step(1.02, calm, sw).phase[0] == Phase.STABILISE
-    assert a.step(1.02 + dwell, calm, sw).phase[0] == Phase.ASSEMBLE
+    tilted = np.array([math.cos(0.1), math.sin(0.1), 0, 0])  # 11.5 deg roll
+    assert a.step(2.0, _own(**calm, t=2.0, q=tilted), view).phase[0] == Phase.STABILISE
+    assert a.step(2.02, _own(**calm, t=2.02), view).phase[0] == Phase.STABILISE
+    assert a.step(2.02 + dwell, _own(**calm, t=2.02 + dwell), view).phase[0] == Phase.ASSEMBLE
 
 
-def test_transit_starts_on_common_quantum_after_all_assembled():
-    m = _mission(2)
-    a = Agent(m, np.array([0, 1]))
+def test_a_lone_agent_uses_its_own_flags_and_sets_t_go():
+    """Own phase and flags are part of the view it decides on: N = 1, nothing heard."""
+    m = _mission(1)
+    a = Agent(m, np.array([0]))
     a.phase[:] = Phase.ASSEMBLE
+    slot = m.slot_ned_m(-1.0)[0]
+    out = a.step(3.0, _own(slot, [0, 0, 0], 3.0), SwarmView.unknown(1, 1))
+    assert out.assembled[0] and out.t_go_s[0] == pytest.approx(5.0)  # ceil(3 + 2 s margin)
+
+
+def _pair(m):
+    """Two companions (one vehicle each) at their slots, each with its own view."""
     slots = m.slot_ned_m(-1.0)
-    own = _own(slots, np.zeros((2, 3)), [0, 0], [True, True])
-    sw = SwarmView(slots.copy(), np.zeros((2, 3)), np.full(2, int(Phase.ASSEMBLE)), np.array([True, False]))
-    out = a.step(3.3, own, sw)
-    assert np.isnan(out.t_go_s)
-    assert out.assembled.all()  # both at their slot now
-    sw.assembled[:] = True
-    out = a.step(3.34, own, sw)
-    assert out.t_go_s == pytest.approx(4.0)
-    assert np.all(a.step(4.0, own, sw).phase == Phase.HOVER)  # one waypoint: zero-length transit
+    agents = [Agent(m, np.array([i])) for i in range(2)]
+    for a in agents:
+        a.phase[:] = Phase.ASSEMBLE
+    views = [SwarmView.unknown(1, 2) for _ in range(2)]
+    return agents, views, slots
+
+
+def test_two_agents_that_notice_at_3_98_and_4_02_agree_on_one_t_go():
+    """The old rule (round each clock up to the quantum) gave 4.0 and 5.0."""
+    m = _mission(2)
+    (a, b), (va, vb), slots = _pair(m)
+    zero = [0.0, 0.0, 0.0]
+    delay = 0.1
+    # A hears B assembled first and proposes at 3.98; B only hears A at 4.02.
+    va.receive([0], _states(1, 3.9, slots[1], zero, flags=FLAG_OWN_VALID | FLAG_ASSEMBLED))
+    out_a = a.step(3.98, _own(slots[0], zero, 3.98), va)
+    assert out_a.t_go_s[0] == pytest.approx(6.0)
+    vb.receive([0], _states(0, 3.9, slots[0], zero, flags=FLAG_OWN_VALID | FLAG_ASSEMBLED))
+    out_b = b.step(4.02, _own(slots[1], zero, 4.02), vb)
+    assert out_b.t_go_s[0] == pytest.approx(7.0)  # its own proposal, A's not heard yet
+    # each hears the other's published state one delay later: the earliest wins
+    vb.receive([0], out_a.published)
+    va.receive([0], out_b.published)
+    out_b = b.step(4.02 + delay, _own(slots[1], zero, 4.02 + delay), vb)
+    out_a = a.step(3.98 + delay, _own(slots[0], zero, 3.98 + delay), va)
+    assert out_a.t_go_s[0] == out_b.t_go_s[0] == pytest.approx(6.0)
+    assert a.step(6.0, _own(slots[0], zero, 6.0), va).phase[0] == b.step(6.0, _own(slots[1], zero, 6.0), vb).phase[0]
+
+
+def test_an_unheard_vehicle_does_not_block_the_transit_start():
+    m = _mission(3)
+    slots = m.slot_ned_m(-1.0)
+    a = Agent(m, np.array([0]))
+    a.phase[:] = Phase.ASSEMBLE
+    view = SwarmView.unknown(1, 3)
+    zero = np.zeros(3)
+    wait = m.cfg.swarm.go_wait_s
+    t = 10.0
+    view.receive([0], _states(1, t, slots[1], zero, flags=FLAG_OWN_VALID | FLAG_ASSEMBLED))
+    out = a.step(t, _own(slots[0], zero, t), view)
+    assert np.isnan(out.t_go_s[0])  # vehicle 2 never heard: wait go_wait_s
+    view.receive([0], _states(1, t + wait - 0.1, slots[1], zero, flags=FLAG_OWN_VALID | FLAG_ASSEMBLED))
+    assert np.isnan(a.step(t + wait - 0.1, _own(slots[0], zero, t + wait - 0.1), view).t_go_s[0])
+    out = a.step(t + wait, _own(slots[0], zero, t + wait), view)
+    assert out.t_go_s[0] == pytest.approx(math.ceil(t + wait + m.cfg.swarm.go_margin_s))
+
+
+def test_a_heard_but_unassembled_vehicle_blocks_until_it_falls_silent():
+    m = _mission(2)
+    slots = m.slot_ned_m(-1.0)
+    a = Agent(m, np.array([0]))
+    a.phase[:] = Phase.ASSEMBLE
+    view = SwarmView.unknown(1, 2)
+    zero = np.zeros(3)
+    view.receive([0], _states(1, 1.0, slots[1] + 20.0, zero, phase=Phase.STABILISE))
+    for t in (1.0, 2.0, 3.9):
+        assert np.isnan(a.step(t, _own(slots[0], zero, t), view).t_go_s[0])
+    # silent for longer than peer_timeout_s: no longer blocks; then go_wait_s
+    t_silent = 1.0 + m.cfg.swarm.peer_timeout_s + 0.01
+    assert np.isnan(a.step(t_silent, _own(slots[0], zero, t_silent), view).t_go_s[0])
+    t_go = a.step(t_silent + m.cfg.swarm.go_wait_s, _own(slots[0], zero, t_silent + m.cfg.swarm.go_wait_s),
+                  view).t_go_s[0]
+    assert np.isfinite(t_go)
 
 
 def test_one_vehicle_agent_equals_batch_row():
@@ -59,31 +141,130 @@ def test_one_vehicle_agent_equals_batch_row():
     vel = rng.normal(0, 0.5, (n, 3))
     phases = np.full(n, int(Phase.ASSEMBLE), dtype=np.int8)
     phases[4] = Phase.STABILISE
-    sw = SwarmView(pos.copy(), vel.copy(), phases, np.zeros(n, bool))
-
+    pub = _states(np.arange(n), 9.96, pos - vel * 0.04, vel)
+    pub.phase[:] = phases
+    batch_view = SwarmView.unknown(n, n)
+    batch_view.receive_all(pub)
     batch = Agent(m, np.arange(n))
     batch.phase[:] = phases
-    out_b = batch.step(10.0, _own(pos, vel, np.zeros(n), np.ones(n, bool)), sw)
+    out_b = batch.step(10.0, _own(pos, vel, 10.0), batch_view)
     for i in range(n):
         one = Agent(m, np.array([i]))
         one.phase[:] = phases[i]
-        # the single agent hears the others through the swarm link: its own row may be stale
-        sw_i = SwarmView(sw.pos_ned_m.copy(), sw.vel_ned_mps.copy(), sw.phase.copy(), sw.assembled.copy())
-        sw_i.pos_ned_m[i] = np.nan
-        out_1 = one.step(10.0, _own(pos[i : i + 1], vel[i : i + 1], [0.0], [True]), sw_i)
-        for f in ("acc_ned_mps2", "vel_ned_mps", "yaw_rad"):
+        view = SwarmView.unknown(1, n)
+        view.receive([0] * (n - 1), pub.select(np.arange(n) != i))
+        out_1 = one.step(10.0, _own(pos[i], vel[i], 10.0), view)
+        for f in ("acc_ned_mps2", "vel_ned_mps", "pos_ned_m", "yaw_rad"):
             np.testing.assert_allclose(getattr(out_1.setpoint, f)[0], getattr(out_b.setpoint, f)[i], atol=1e-12)
         assert out_1.phase[0] == out_b.phase[i]
+    assert np.isfinite(out_b.setpoint.acc_ned_mps2[[0, 1, 2, 3, 5]]).all()
+
+
+def test_state_setpoint_is_the_state_the_acceleration_leads_to():
+    m = _mission(1)
+    a = Agent(m, np.array([0]))
+    a.phase[:] = Phase.ASSEMBLE
+    p, v = m.slot_ned_m(-1.0)[0] + [3.0, -2.0, 1.0], np.array([0.5, 0.2, -0.1])
+    sp = a.step(1.0, _own(p, v, 1.0), SwarmView.unknown(1, 1)).setpoint
+    lead, acc = m.cfg.setpoint.lead_s, sp.acc_ned_mps2[0]
+    assert np.linalg.norm(acc) > 0.5
+    np.testing.assert_allclose(sp.pos_ned_m[0], p + v * lead + 0.5 * acc * lead**2, atol=1e-12)
+    np.testing.assert_allclose(sp.vel_ned_mps[0], v + acc * lead, atol=1e-12)
+    acc_only = Mission(MissionConfig(n_vehicles=1, formation={"radius_m": 5.0}, waypoints_ned_m=((0.0, 0.0, -10.0),),
+                                     setpoint={"kind": "acceleration"}))
+    b = Agent(acc_only, np.array([0]))
+    b.phase[:] = Phase.ASSEMBLE
+    sp_b = b.step(1.0, _own(p, v, 1.0), SwarmView.unknown(1, 1)).setpoint
+    np.testing.assert_allclose(sp_b.acc_ned_mps2[0], acc)
+    assert np.isnan(sp_b.pos_ned_m).all() and np.isnan(sp_b.vel_ned_mps).all()
+
+
+def test_nan_or_stale_own_state_gives_a_stop_never_an_exception():
+    m = _mission(2, obstacles=({"centre_ned_m": (0.0, 6.0, -10.0), "radius_m": 1.0},))
+    a = Agent(m, np.array([0]))
+    a.phase[:] = Phase.ASSEMBLE
+    view = SwarmView.unknown(1, 2)
+    view.receive([0], _states(1, 1.0, m.slot_ned_m(-1.0)[1], np.zeros(3)))
+    for own in (_own([np.nan, 0, -10], [0, 0, 0], 1.0), _own([0, 0, -10], [0, np.inf, 0], 1.0),
+                _own([0, 0, -10], [0, 0, 0], 1.0, q=[np.nan] * 4),
+                _own([0, 0, -10], [0, 0, 0], 1.0 - 2 * m.cfg.swarm.own_timeout_s)):
+        out = a.step(1.0, own, view)
+        assert not out.own_valid[0]
+        np.testing.assert_array_equal(out.setpoint.vel_ned_mps[0], 0.0)
+        assert np.isnan(out.setpoint.acc_ned_mps2).all() and np.isnan(out.setpoint.pos_ned_m).all()
+        assert out.published.flags[0] & FLAG_OWN_VALID == 0
 
 
 def test_apf_pushes_apart_close_vehicles():
     m = _mission(2)
     a = Agent(m, np.arange(2))
     a.phase[:] = Phase.ASSEMBLE
-    slots = m.slot_ned_m(-1.0)
-    mid = slots.mean(axis=0)
+    mid = m.slot_ned_m(-1.0).mean(axis=0)
     pos = np.array([mid + [0, -0.3, 0], mid + [0, 0.3, 0]])
-    sw = SwarmView(pos.copy(), np.zeros((2, 3)), np.full(2, int(Phase.ASSEMBLE)), np.zeros(2, bool))
-    out = a.step(1.0, _own(pos, np.zeros((2, 3)), [0, 0], [True, True]), sw)
-    acc = out.setpoint.acc_ned_mps2
+    view = SwarmView.unknown(2, 2)
+    view.receive_all(_states(np.arange(2), 1.0, pos, np.zeros((2, 3))))
+    acc = a.step(1.0, _own(pos, np.zeros((2, 3)), 1.0), view).setpoint.acc_ned_mps2
     assert acc[0, 1] < 0 < acc[1, 1]
+
+
+def _push(m, own_pos, view, t):
+    a = Agent(m, np.array([0]))
+    a.phase[:] = Phase.HOVER  # no consensus neighbour in a 2-vehicle chain for vehicle 0
+    return a.step(t, _own(own_pos, np.zeros(3), t), view).setpoint.acc_ned_mps2[0]
+
+
+def test_a_silent_vehicle_stays_an_obstacle_for_good():
+    m = _mission(2)
+    me = m.slot_ned_m(-1.0)[0]
+    other = me + [0.0, 1.5, 0.0]
+    base = _push(m, me, SwarmView.unknown(1, 2), 1.0)
+    view = SwarmView.unknown(1, 2)
+    view.receive([0], _states(1, 1.0, other, np.zeros(3)))
+    fresh = _push(m, me, view, 1.0) - base
+    assert fresh[1] < -0.5  # pushed away (west) by a vehicle 1.5 m east
+    for t in (1.0 + 2 * m.cfg.swarm.stale_after_s, 60.0, 3600.0):
+        ghost = _push(m, me, view, t) - base
+        assert ghost[1] < -0.5, f"silent for {t - 1:.0f} s: no longer avoided"
+    # the column reaches the ground: the vehicle may have landed below its last position
+    below = me + [0.0, 0.0, 5.0]
+    assert (_push(m, below, view, 60.0) - _push(m, below, SwarmView.unknown(1, 2), 60.0))[1] < -0.5
+
+
+def test_a_stale_neighbour_leaves_consensus():
+    m = _mission(2)
+    slots = m.slot_ned_m(-1.0)
+    b = Agent(m, np.array([1]))  # chain: 1 hears 0
+    b.phase[:] = Phase.ASSEMBLE
+    far = slots[0] + [30.0, 0.0, 0.0]  # 0 far from its slot: 1's consensus term pulls it along
+    view = SwarmView.unknown(1, 2)
+    view.receive([0], _states(0, 10.0, far, np.zeros(3)))
+    alone = b.step(10.0, _own(slots[1], np.zeros(3), 10.0), SwarmView.unknown(1, 2)).setpoint.acc_ned_mps2[0]
+    b2 = Agent(m, np.array([1]))
+    b2.phase[:] = Phase.ASSEMBLE
+    heard = b2.step(10.0, _own(slots[1], np.zeros(3), 10.0), view).setpoint.acc_ned_mps2[0]
+    assert heard[0] > alone[0] + 0.5
+    b3 = Agent(m, np.array([1]))
+    b3.phase[:] = Phase.ASSEMBLE
+    t_stale = 10.0 + m.cfg.swarm.stale_after_s + 0.01
+    stale = b3.step(t_stale, _own(slots[1], np.zeros(3), t_stale), view).setpoint.acc_ned_mps2[0]
+    np.testing.assert_allclose(stale, alone, atol=1e-12)
+
+
+def test_view_keeps_the_newest_state_whatever_the_arrival_order():
+    view = SwarmView.unknown(2, 3)
+    new = _states(2, 5.0, [1.0, 2, 3], [0, 0, 0])
+    old = _states(2, 4.0, [9.0, 9, 9], [0, 0, 0])
+    assert view.receive([1], new) == 1
+    assert view.receive([1], old) == 0 and view.ignored_old[1] == 1
+    np.testing.assert_array_equal(view.pos_ned_m[1, 2], [1, 2, 3])
+    # both in one batch, newest first: the newest still wins
+    both = SwarmStates(*(np.concatenate([getattr(new, f), getattr(old, f)]) for f in SwarmStates.__dataclass_fields__))
+    v2 = SwarmView.unknown(1, 3)
+    v2.receive([0, 0], both)
+    assert v2.stamp_s[0, 2] == 5.0
+    # hostile input: an id out of range or a NaN stamp is ignored, never indexed
+    bad = _states(7, 5.0, [0, 0, 0], [0, 0, 0])
+    assert view.receive([0], bad) == 0
+    assert not view.receive_one(0, -1, 1.0, [0, 0, 0], [0, 0, 0], 2, 0, np.nan)
+    assert not view.receive_one(0, 1, np.nan, [0, 0, 0], [0, 0, 0], 2, 0, np.nan)
+    assert view.age_s(6.0)[1, 2] == 1.0 and view.age_s(6.0)[0, 0] == np.inf

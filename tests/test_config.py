@@ -53,7 +53,7 @@ def test_cli_reports_config_error(tmp_path):
     f = tmp_path / "bad.yaml"
     f.write_text("carrier:\n  vel_ned_mps: [5, 0]\n")
     r = subprocess.run(
-        [sys.executable, "-m", "companion.cli", "simulate", str(f), "--quiet"],
+        [sys.executable, "-m", "swarmdrop.cli", "simulate", str(f), "--quiet"],
         capture_output=True, text=True, timeout=120, cwd=ROOT,
     )
     assert r.returncode == 2
@@ -61,7 +61,7 @@ def test_cli_reports_config_error(tmp_path):
 
 
 def test_cli_simulate_writes_run_directory_and_passes_checks(tmp_path):
-    from companion.cli import main
+    from swarmdrop.cli import main
 
     out = tmp_path / "run"
     assert main(["simulate", str(ROOT / "configs" / "small_6.yaml"), "--out", str(out), "--quiet",

@@ -55,3 +55,43 @@ def test_run_directory_contents(run):
                  "fig8_formation_deviation", "fig9_avoidance", "fig10_snapshots"):
         p = out / f"{name}.png"
         assert p.stat().st_size > 10_000, name
+
+
+def _fly(**changes):
+    import dataclasses
+
+    from sim_bridge.headless import run_scenario
+    from sim_bridge.metrics import compute_metrics
+
+    cfg = load_scenario(ROOT / "configs" / "small_6.yaml")
+    for key, value in changes.items():
+        cfg = dataclasses.replace(cfg, **{key: value})
+    return compute_metrics(run_scenario(cfg, progress=False), None)
+
+
+def test_lossy_delayed_link_still_converges_without_collision():
+    """20 % of neighbour states lost, 100 ms delay plus up to 40 ms jitter (seeded)."""
+    from sim_bridge.transport import LinkConfig
+
+    m = _fly(link=LinkConfig(kind="lossy", loss=0.2, delay_s=0.1, jitter_s=0.04))
+    assert all(m["checks"].values()), m["checks"]
+    link = m["link"]
+    assert 0.75 < link["delivered_fraction"] < 0.85
+    assert 0.1 <= link["age_at_delivery_s"]["p50"] <= 0.16
+    assert m["assembly"]["transit_start_spread_s"] == 0.0  # every vehicle holds the same t_go
+
+
+def test_state_setpoints_fly_the_mission_as_well_as_acceleration_only(run):
+    """Position and velocity that agree with the acceleration do not degrade the paper metrics."""
+    import dataclasses
+
+    cfg, m_state, _ = run
+    assert cfg.mission.setpoint.kind == "state"
+    mission = dataclasses.replace(cfg.mission, setpoint=dataclasses.replace(cfg.mission.setpoint, kind="acceleration"))
+    m_acc = _fly(mission=mission)
+    assert all(m_acc["checks"].values())
+    dev_s, dev_a = m_state["formation_deviation"], m_acc["formation_deviation"]
+    assert dev_s["final_max_m"] < cfg.completion_tol_m
+    assert dev_s["max_during_transit_m"] <= 1.25 * dev_a["max_during_transit_m"] + 0.05
+    assert m_state["separation"]["min_pair_distance_m"] >= 0.9 * m_acc["separation"]["min_pair_distance_m"]
+    assert m_state["mission"]["completion_time_s"] <= m_acc["mission"]["completion_time_s"] + 5.0

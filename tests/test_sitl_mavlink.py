@@ -14,11 +14,13 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
-from sim_bridge.sitl.autopilot import Mode  # noqa: E402
+from companion.link.dialects import Mode, dialect_named  # noqa: E402
 from sim_bridge.sitl.config import SitlConfig  # noqa: E402
 from sim_bridge.sitl.params_table import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, encode_param_value  # noqa: E402
 from sim_bridge.sitl.server import BackgroundSitl  # noqa: E402
 from sim_bridge.sitl.testing import MavClient, local_endpoints  # noqa: E402
+
+PX4 = dialect_named("px4")
 
 N = 4
 NAN = math.nan
@@ -48,7 +50,7 @@ def test_heartbeat_and_mode_decoding(sitl):
         assert hb.type == mavlink.MAV_TYPE_QUADROTOR and hb.autopilot == mavlink.MAV_AUTOPILOT_PX4
         assert hb.base_mode & mavlink.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
         assert not hb.base_mode & mavlink.MAV_MODE_FLAG_SAFETY_ARMED
-        assert hb.custom_mode == Mode.HOLD == 50593792
+        assert hb.custom_mode == PX4.custom_mode(Mode.HOLD) == 50593792
         assert mavutil.mode_string_v10(hb) == "LOITER"
         assert c.conn.mavlink20()
         for main, sub, name in ((3, 0, "POSCTL"), (4, 6, "LAND"), (4, 3, "LOITER")):
@@ -179,11 +181,11 @@ def test_offboard_loss_hold_then_land(sitl):
             pytest.fail("did not climb in offboard")
         setpoint()
         t_stop = time.monotonic()
-        hb = c.wait("HEARTBEAT", lambda m: m.custom_mode == Mode.HOLD, 3)
+        hb = c.wait("HEARTBEAT", lambda m: m.custom_mode == PX4.custom_mode(Mode.HOLD), 3)
         t_hold = time.monotonic()
         assert hb is not None
         assert t_hold - t_stop <= 0.5 + 0.2
-        assert c.wait("HEARTBEAT", lambda m: m.custom_mode == Mode.LAND, 3) is not None
+        assert c.wait("HEARTBEAT", lambda m: m.custom_mode == PX4.custom_mode(Mode.LAND), 3) is not None
         assert sitl.autopilots[k].mode == Mode.LAND
     finally:
         c.command(sysid, 400, 0, 21196)
@@ -199,8 +201,9 @@ def test_bad_input_leaves_sitl_and_other_vehicles_unaffected(sitl):
     c_other = client_for(sitl, other)
     c = client_for(sitl, victim)
     try:
-        port = sitl.endpoints[victim].local_port
-        bad_before = sitl.endpoints[victim].bad_frames
+        ep = sitl.endpoints[victim]
+        port = ep.link.local_port
+        bad_before = ep.bad_frames + ep.link.bytes_skipped
         arm = mavlink.MAVLink_command_long_message(4, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)  # for sysid 4
         good = _frame(arm)
         wrong_crc = bytearray(_frame(mavlink.MAVLink_command_long_message(3, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)))
@@ -214,7 +217,7 @@ def test_bad_input_leaves_sitl_and_other_vehicles_unaffected(sitl):
         c.mav.param_request_read_send(3, 1, b"COM_OF_LOSS_T", -1)
         assert c.wait("PARAM_VALUE", lambda m: m.param_id == "COM_OF_LOSS_T", 3) is not None
         assert c.wait("HEARTBEAT", lambda m: m.get_srcSystem() == 3 and not m.base_mode & 128, 3)
-        assert sitl.endpoints[victim].bad_frames > bad_before
+        assert ep.bad_frames + ep.link.bytes_skipped > bad_before
         # the vehicle the stray arm named was not armed through another vehicle's link
         hb = c_other.wait("HEARTBEAT", lambda m: m.get_srcSystem() == 4, 3)
         assert hb is not None and not hb.base_mode & 128

@@ -11,7 +11,7 @@ from companion.params import InnerLoopConfig
 from sim_bridge.carrier import AttitudeDistribution, CarrierConfig
 from sim_bridge.sitl.autopilot import ACCEPTED, TEMPORARILY_REJECTED, Mode
 from sim_bridge.sitl.config import SitlConfig, SpawnConfig
-from sim_bridge.sitl.offboard import Rejected, decode_attitude_target, decode_position_target
+from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target
 from sim_bridge.sitl.params_table import (
     MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, ParamTable, decode_param_value, default_specs, encode_param_value,
 )
@@ -130,7 +130,11 @@ def test_carrier_release_schedule_and_throw_recovery():
                                 body_rate_std_radps=1.0))
     s = _server(vehicles=3, seed=3, spawn=SpawnConfig(launch="carrier"), carrier=carrier)
     aps = s.autopilots
-    assert all(ap.docked for ap in aps) and aps[0].command_arm(1, NAN, 0.0) == TEMPORARILY_REJECTED
+    assert all(ap.docked for ap in aps) and aps[0].command_arm(1, NAN, 0.0) == ACCEPTED  # armed for the throw
+    assert aps[0].system_status == 8 and not aps[0].needs_physics  # motors locked until the release
+    aps[2].params.set("COM_THROW_EN", 0)
+    assert aps[2].command_arm(1, NAN, 0.0) == TEMPORARILY_REJECTED  # no throw launch: no arming on the carrier
+    aps[2].params.set("COM_THROW_EN", 1)
     assert _run_until(s, lambda: not aps[0].docked, 1.0)
     assert aps[1].docked and aps[0].armed and aps[0].mode == Mode.TAKEOFF
     assert s.state.pos_ned_m[1] == pytest.approx([3.0 * s.sim_s, 0, -30.0])  # docked ones ride the carrier

@@ -25,8 +25,11 @@ Distances are Euclidean in NED metres; accelerations NED m/s^2.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
-from numba import njit
+
+from companion.control.kernel import kernel
 
 __all__ = ["psi", "vehicle_repulsion", "obstacle_repulsion", "combined_accel", "TIE_BREAK_DIR_NED"]
 
@@ -108,7 +111,7 @@ def vehicle_repulsion(
     full gain: +north if query_index > j, else -north. query_index defaults to
     self_index (or to +north for every pair when neither is given).
 
-    Cost: O(N M) time in a compiled loop, O(N) memory.
+    Cost: O(N M) time (interpreted here; sim_bridge.jit compiles the same kernel).
 
     Args:
         pos_ned_m: (N, 3) query vehicle positions, NED metres.
@@ -141,12 +144,14 @@ def vehicle_repulsion(
     cutoff = min(sensing_radius_m, influence_radius_m)
     if not np.isfinite(kappa):
         raise ValueError(f"kappa must be finite, got {kappa!r}")
-    known = np.all(np.isfinite(q), axis=1)
-    return _pair_repulsion(p, q, known, self_idx.astype(np.int64), qidx.astype(np.int64),
-                           float(gain_mps2), float(influence_radius_m), float(cutoff), float(kappa))
+    use = np.all(np.isfinite(q), axis=1)[None, :] & (np.arange(m)[None, :] != self_idx[:, None])
+    out = np.zeros((n, 3))
+    pair_repulsion_rows(p, np.broadcast_to(q, (n, m, 3)), use, qidx.astype(np.int64), float(gain_mps2),
+                        float(influence_radius_m), float(cutoff), float(kappa), out)
+    return out
 
 
-@njit(cache=True)
+@kernel
 def _psi_scalar(dbar: float, kappa: float) -> float:
     """psi for one distance; the same formula as psi (kept for the compiled pair loop)."""
     if dbar >= 1.0:
@@ -155,25 +160,29 @@ def _psi_scalar(dbar: float, kappa: float) -> float:
     if abs(kappa) < 1e-12:
         return 1.0 - x
     if kappa > 0:
-        return np.exp(-kappa * x) * np.expm1(-kappa * (1.0 - x)) / np.expm1(-kappa)
-    return np.expm1(kappa * (1.0 - x)) / np.expm1(kappa)
+        return math.exp(-kappa * x) * math.expm1(-kappa * (1.0 - x)) / math.expm1(-kappa)
+    return math.expm1(kappa * (1.0 - x)) / math.expm1(kappa)
 
 
-@njit(cache=True)
-def _pair_repulsion(p, q, known, self_idx, qidx, gain, infl, cutoff, kappa):
-    """Compiled O(N M) pair loop of vehicle_repulsion: (N, 3) accelerations.
+@kernel
+def pair_repulsion_rows(p, q, use, qidx, gain, infl, cutoff, kappa, out):
+    """Vehicle repulsion of eq. 30 added into out (n, 3), each row i with its own view.
 
-    A numpy version spends most of its time in call overhead at swarm sizes
-    (40 x 40); this loop does the same arithmetic without temporaries."""
-    n, m = p.shape[0], q.shape[0]
-    out = np.zeros((n, 3))
-    for i in range(n):
-        for j in range(m):
-            if not known[j] or j == self_idx[i]:
+    Args (arrays indexed element by element, so one vehicle interpreted and a fleet
+    compiled both stay cheap):
+        p: (n, 3) query positions; q: (n, M, 3) other bodies as row i knows them;
+        use: (n, M) bool, body j counts for row i (known, airborne, not itself);
+        qidx: (n,) global index of each query vehicle (coincidence tie-break only);
+        gain, infl, cutoff, kappa: as vehicle_repulsion.
+    """
+    for i in range(p.shape[0]):
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        for j in range(q.shape[1]):
+            if not use[i, j]:
                 continue
-            dx, dy, dz = p[i, 0] - q[j, 0], p[i, 1] - q[j, 1], p[i, 2] - q[j, 2]
-            d = np.sqrt(dx * dx + dy * dy + dz * dz)
-            if d >= cutoff:
+            dx, dy, dz = px - q[i, j, 0], py - q[i, j, 1], pz - q[i, j, 2]
+            d = math.sqrt(dx * dx + dy * dy + dz * dz)
+            if not d < cutoff:  # also skips a NaN distance
                 continue
             mag = gain * _psi_scalar(d / infl, kappa)
             if d < 1e-9:
@@ -185,7 +194,6 @@ def _pair_repulsion(p, q, known, self_idx, qidx, gain, infl, cutoff, kappa):
                 out[i, 0] += mag * dx / d
                 out[i, 1] += mag * dy / d
                 out[i, 2] += mag * dz / d
-    return out
 
 
 def obstacle_repulsion(
@@ -230,19 +238,40 @@ def obstacle_repulsion(
         raise ValueError(f"gain_mps2 must be finite and >= 0, got {gain_mps2!r}")
     if not np.isfinite(kappa):
         raise ValueError(f"kappa must be finite, got {kappa!r}")
-    return _obstacle_loop(p, o, r, float(gain_mps2), float(influence_m), float(kappa))
+    n, k = p.shape[0], o.shape[0]
+    out = np.zeros((n, 3))
+    ends = np.broadcast_to(o, (n, k, 3))
+    segment_repulsion_rows(p, ends, ends, np.broadcast_to(r, (n, k)), np.ones((n, k), dtype=bool), float(gain_mps2),
+                           float(influence_m), float(kappa), out)
+    return out
 
 
-@njit(cache=True)
-def _obstacle_loop(p, o, r, gain, infl, kappa):
-    """Compiled N x K loop of obstacle_repulsion: (N, 3) accelerations."""
-    out = np.zeros((p.shape[0], 3))
+@kernel
+def segment_repulsion_rows(p, a, b, radius, use, gain, infl, kappa, out):
+    """Repulsion from rounded segments (capsules) added into out (n, 3).
+
+    Body k of row i is the set of points within radius[i, k] of the segment from
+    a[i, k] to b[i, k]; the distance is measured to its surface, so a sphere is the
+    case a == b. The push is gain * psi(surface distance / infl), away from the
+    closest point of the segment (+TIE_BREAK_DIR_NED on the segment itself).
+    Static obstacles (spheres) and silent vehicles (the column a lost vehicle can
+    occupy while its autopilot holds and then lands) both go through here.
+    """
     for i in range(p.shape[0]):
-        for k in range(o.shape[0]):
-            dx, dy, dz = p[i, 0] - o[k, 0], p[i, 1] - o[k, 1], p[i, 2] - o[k, 2]
-            dc = np.sqrt(dx * dx + dy * dy + dz * dz)
-            mag = gain * _psi_scalar((dc - r[k]) / infl, kappa)
-            if mag == 0.0:
+        px, py, pz = p[i, 0], p[i, 1], p[i, 2]
+        for k in range(a.shape[1]):
+            if not use[i, k]:
+                continue
+            ax, ay, az = a[i, k, 0], a[i, k, 1], a[i, k, 2]
+            sx, sy, sz = b[i, k, 0] - ax, b[i, k, 1] - ay, b[i, k, 2] - az
+            ss = sx * sx + sy * sy + sz * sz
+            f = 0.0
+            if ss > 0.0:
+                f = min(1.0, max(0.0, ((px - ax) * sx + (py - ay) * sy + (pz - az) * sz) / ss))
+            dx, dy, dz = px - (ax + f * sx), py - (ay + f * sy), pz - (az + f * sz)
+            dc = math.sqrt(dx * dx + dy * dy + dz * dz)
+            mag = gain * _psi_scalar((dc - radius[i, k]) / infl, kappa)
+            if not mag > 0.0:
                 continue
             if dc < 1e-9:
                 ux, uy, uz = TIE_BREAK_DIR_NED[0], TIE_BREAK_DIR_NED[1], TIE_BREAK_DIR_NED[2]
@@ -251,23 +280,20 @@ def _obstacle_loop(p, o, r, gain, infl, kappa):
             out[i, 0] += mag * ux
             out[i, 1] += mag * uy
             out[i, 2] += mag * uz
-    return out
 
 
-@njit(cache=True)
-def _clip_sum(u1, u2, u1_max, total_max):
-    """Row-wise clip(clip(u1, u1_max) + u2, total_max) for (N, 3) arrays (compiled)."""
-    out = np.empty_like(u1)
+@kernel
+def clip_sum_rows(u1, u2, u1_max, total_max, out):
+    """Row-wise out = clip(clip(u1, u1_max) + u2, total_max) for (N, 3) arrays (eq. 31)."""
     for i in range(u1.shape[0]):
-        n1 = np.sqrt(u1[i, 0] ** 2 + u1[i, 1] ** 2 + u1[i, 2] ** 2)
+        n1 = math.sqrt(u1[i, 0] ** 2 + u1[i, 1] ** 2 + u1[i, 2] ** 2)
         s1 = min(1.0, u1_max / max(n1, 1e-300))
         for a in range(3):
             out[i, a] = s1 * u1[i, a] + u2[i, a]
-        nt = np.sqrt(out[i, 0] ** 2 + out[i, 1] ** 2 + out[i, 2] ** 2)
+        nt = math.sqrt(out[i, 0] ** 2 + out[i, 1] ** 2 + out[i, 2] ** 2)
         st = min(1.0, total_max / max(nt, 1e-300))
         for a in range(3):
             out[i, a] *= st
-    return out
 
 
 def combined_accel(
@@ -307,4 +333,6 @@ def combined_accel(
     for name, v in (("u1_max_mps2", u1_max_mps2), ("total_max_mps2", total_max_mps2)):
         if not v > 0:
             raise ValueError(f"{name} must be > 0, got {v!r}")
-    return _clip_sum(u1, u2, float(u1_max_mps2), float(total_max_mps2))
+    out = np.empty_like(u1)
+    clip_sum_rows(u1, u2, float(u1_max_mps2), float(total_max_mps2), out)
+    return out

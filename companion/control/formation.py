@@ -22,16 +22,17 @@ K1 biases the formation (the forcing B K1 h does not vanish at x = h).
 """
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import numpy as np
-from numba import njit
 from pydantic import Field
 from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT
 
 from companion.control import topology as _topo
+from companion.control.kernel import kernel
 
 __all__ = [
     "A_DOUBLE_INTEGRATOR",
@@ -40,6 +41,8 @@ __all__ = [
     "FormationUnstableError",
     "formation_reference",
     "consensus_accel",
+    "consensus_rows",
+    "gains_vector",
     "closed_loop_matrix",
     "mode_eigenvalues",
     "check_stability",
@@ -217,54 +220,90 @@ def consensus_accel(
             raise ValueError(f"rows must be a 1-D integer array of indices in [0, {n}), got {rows!r}")
 
     rows = np.arange(n) if rows is None else rows.astype(np.int64)
-    g = gains
-    k = np.array([g.k1_pos_per_s2, g.k1_vel_per_s, g.k2_pos_per_s2, g.k2_vel_per_s, g.k3_pos_per_s2, g.k3_vel_per_s])
     out = np.empty((len(rows), 3))
-    bad = _consensus_rows(pos, vel, np.asarray(h_pos_ned_m, float), np.asarray(h_vel_ned_mps, float),
-                          np.asarray(h_acc_ned_mps2, float), W, rows, k, out)
+    usable = np.broadcast_to(np.ones(n, dtype=bool), (len(rows), n))
+    bad = consensus_rows(pos[rows], vel[rows], rows, np.broadcast_to(pos, (len(rows), n, 3)),
+                         np.broadcast_to(vel, (len(rows), n, 3)), usable, np.asarray(h_pos_ned_m, float),
+                         np.asarray(h_vel_ned_mps, float), np.asarray(h_acc_ned_mps2, float), W,
+                         _topo.neighbour_table(W), gains_vector(gains), math.inf, out)
     if bad >= 0:
         who = rows.tolist() if len(rows) <= 10 else "..."
         raise ValueError(f"non-finite state or reference for vehicle(s) [{bad}] read by vehicle(s) {who}")
     return out
 
 
-@njit(cache=True)
-def _consensus_rows(pos, vel, h_pos, h_vel, h_acc, W, rows, k, out) -> int:
-    """Compiled eq. 27 for the vehicles `rows`, written into out (R, 3).
+def gains_vector(gains: ConsensusGains) -> np.ndarray:
+    """(k1_pos, k1_vel, k2_pos, k2_vel, k3_pos, k3_vel) as the (6,) array consensus_rows reads."""
+    g = gains
+    return np.array([g.k1_pos_per_s2, g.k1_vel_per_s, g.k2_pos_per_s2, g.k2_vel_per_s, g.k3_pos_per_s2,
+                     g.k3_vel_per_s])
 
-    Reads only the rows and the vehicles they hear (W[i, j] != 0), so unknown
-    (NaN) states elsewhere never enter as 0 * NaN. k = (k1_pos, k1_vel, k2_pos,
-    k2_vel, k3_pos, k3_vel). Returns -1, or the index of the first vehicle read
-    whose state or reference is not finite. A self-loop w_ii adds w_ii (e_i - e_i) = 0
-    and is skipped.
+
+@kernel
+def consensus_rows(own_pos, own_vel, ids, nb_pos, nb_vel, usable, h_pos, h_vel, h_acc, W, nbr, k, err_max,
+                   out) -> int:
+    """eq. 27 (+ h'') for the vehicles ids[r], each with its own view of its neighbours.
+
+        out[r] = K1 x_i + K2 e_i + K3 sum_j w_ij (e_j - e_i) + h_i'',  i = ids[r], e = x - h
+
+    Args (arrays indexed element by element: interpreted for one onboard vehicle,
+    compiled by sim_bridge.jit for a fleet):
+        own_pos, own_vel: (R, 3) states of the commanded vehicles (first-hand).
+        ids: (R,) their indices in the mission.
+        nb_pos, nb_vel: (R, N, 3) every vehicle's state as row r knows it.
+        usable: (R, N) bool, vehicle j may enter row r's sum (heard, fresh,
+            flying in formation); a neighbour that is not usable has weight 0.
+        h_pos, h_vel, h_acc: (N, 3) slot references; W: (N, N) weights;
+        nbr: (N, K) who each vehicle hears (topology.neighbour_table; -1 padded), so the
+            loop costs the in-degree, not N;
+        k: (6,) gains (gains_vector); err_max: slot-position errors longer than
+            this (m) are shortened to it before the law (math.inf = eq. 27 exactly).
+        out: (R, 3) written.
+    Returns:
+        -1, or the index of the first vehicle read whose state or reference is not
+        finite (its row of out is then undefined). A self-loop w_ii adds 0 and is
+        skipped.
     """
-    n = pos.shape[0]
-    ei = np.empty(6)
-    ej = np.empty(6)
-    c = np.empty(6)
-    for r in range(rows.shape[0]):
-        i = rows[r]
-        for a in range(3):
-            ei[a] = pos[i, a] - h_pos[i, a]
-            ei[a + 3] = vel[i, a] - h_vel[i, a]
-        if not (np.all(np.isfinite(ei)) and np.all(np.isfinite(h_acc[i]))):
+    for r in range(ids.shape[0]):
+        i = ids[r]
+        e0, e1, e2 = own_pos[r, 0] - h_pos[i, 0], own_pos[r, 1] - h_pos[i, 1], own_pos[r, 2] - h_pos[i, 2]
+        f0, f1, f2 = own_vel[r, 0] - h_vel[i, 0], own_vel[r, 1] - h_vel[i, 1], own_vel[r, 2] - h_vel[i, 2]
+        en = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
+        if not (math.isfinite(en) and math.isfinite(f0 + f1 + f2) and math.isfinite(h_acc[i, 0] + h_acc[i, 1]
+                                                                                   + h_acc[i, 2])):
             return i
-        c[:] = 0.0
-        for j in range(n):
+        if en > err_max:
+            s = err_max / en
+            e0, e1, e2 = e0 * s, e1 * s, e2 * s
+        c0 = c1 = c2 = c3 = c4 = c5 = 0.0
+        for m in range(nbr.shape[1]):
+            j = nbr[i, m]
+            if j < 0:
+                break
             w = W[i, j]
-            if w == 0.0 or j == i:
+            if w == 0.0 or j == i or not usable[r, j]:
                 continue
-            for a in range(3):
-                ej[a] = pos[j, a] - h_pos[j, a]
-                ej[a + 3] = vel[j, a] - h_vel[j, a]
-            if not np.all(np.isfinite(ej)):
+            g0, g1, g2 = nb_pos[r, j, 0] - h_pos[j, 0], nb_pos[r, j, 1] - h_pos[j, 1], nb_pos[r, j, 2] - h_pos[j, 2]
+            v0, v1, v2 = nb_vel[r, j, 0] - h_vel[j, 0], nb_vel[r, j, 1] - h_vel[j, 1], nb_vel[r, j, 2] - h_vel[j, 2]
+            gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+            if not (math.isfinite(gn) and math.isfinite(v0 + v1 + v2)):
                 return j
-            for a in range(6):
-                c[a] += w * (ej[a] - ei[a])
-        for a in range(3):
-            # K = [k_pos I3, k_vel I3], so K x = k_pos p + k_vel v.
-            out[r, a] = (k[0] * pos[i, a] + k[1] * vel[i, a] + k[2] * ei[a] + k[3] * ei[a + 3]
-                         + k[4] * c[a] + k[5] * c[a + 3] + h_acc[i, a])
+            if gn > err_max:
+                s = err_max / gn
+                g0, g1, g2 = g0 * s, g1 * s, g2 * s
+            c0 += w * (g0 - e0)
+            c1 += w * (g1 - e1)
+            c2 += w * (g2 - e2)
+            c3 += w * (v0 - f0)
+            c4 += w * (v1 - f1)
+            c5 += w * (v2 - f2)
+        # K = [k_pos I3, k_vel I3], so K x = k_pos p + k_vel v.
+        out[r, 0] = k[0] * own_pos[r, 0] + k[1] * own_vel[r, 0] + k[2] * e0 + k[3] * f0 + k[4] * c0 + k[5] * c3 \
+            + h_acc[i, 0]
+        out[r, 1] = k[0] * own_pos[r, 1] + k[1] * own_vel[r, 1] + k[2] * e1 + k[3] * f1 + k[4] * c1 + k[5] * c4 \
+            + h_acc[i, 1]
+        out[r, 2] = k[0] * own_pos[r, 2] + k[1] * own_vel[r, 2] + k[2] * e2 + k[3] * f2 + k[4] * c2 + k[5] * c5 \
+            + h_acc[i, 2]
     return -1
 
 

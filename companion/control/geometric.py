@@ -10,17 +10,17 @@ Sign conventions (see docs/controllers.md for the derivation):
     * f = -t . R e3 (eq. 14), clipped to [0, f_max]: hover with R = I gives f = m g.
 
 Setpoint semantics follow PX4 offboard (see FleetSetpoint). All per-vehicle maths
-lives in numba functions operating on tuples; ``geometric_control`` is a thin batch
-wrapper looping the same core that the fused physics stepper calls.
+lives in kernels operating on tuples (companion.control.kernel): the companion runs
+them interpreted, the fused physics stepper compiled; ``geometric_control`` is a
+thin batch wrapper looping the same core.
 """
 from __future__ import annotations
 
 import math
 
 import numpy as np
-from numba import njit
-
-from companion.control import so3
+from companion.control.kernel import kernel
+from companion.control.so3 import cross, load_mat, mattmul, mattvec, mul, norm, scale, sub
 from companion.params import GRAVITY_MPS2, GeometricGains, PIDGains, VehicleParams
 from companion.state import FleetSetpoint, FleetState
 
@@ -73,9 +73,9 @@ def pack_setpoint(sp: FleetSetpoint) -> np.ndarray:
     return np.ascontiguousarray(np.concatenate([np.asarray(c, float).reshape(n, -1) for c in cols], axis=1))
 
 
-# ----------------------------------------------------------------------------- shared njit pieces
+# ----------------------------------------------------------------------------- shared kernels
 
-@njit(cache=True)
+@kernel
 def thrust_vector(ax, ay, az, prm):
     """Saturated desired thrust vector t = m (a - g e3) in NED newtons.
 
@@ -102,7 +102,7 @@ def thrust_vector(ax, ay, az, prm):
     return tx, ty, tz
 
 
-@njit(cache=True)
+@kernel
 def yaw_target(rot, sp):
     """(yaw_d, yaw_rate_ff): yaw_rad if finite; else current heading + yaw-rate feed-forward.
 
@@ -119,22 +119,22 @@ def yaw_target(rot, sp):
     return math.atan2(rot[3], rot[0]), rate
 
 
-@njit(cache=True)
+@kernel
 def desired_rot(b3, yaw):
     """eq. 15: R_d = [b1d, b3d x b1d, b3d], b1d = heading projected perpendicular to b3d."""
     b1c = (math.cos(yaw), math.sin(yaw), 0.0)
-    b2 = so3.cross(b3, b1c)
-    n2 = so3.norm(b2)
+    b2 = cross(b3, b1c)
+    n2 = norm(b2)
     if n2 < 1e-6:  # b3d horizontal along the heading (excluded by the tilt limit): use world e2
-        b2 = so3.cross(b3, (-math.sin(yaw), math.cos(yaw), 0.0))
-        b2 = so3.cross(b2, b3)
-        n2 = so3.norm(b2)
-    b2 = so3.scale(b2, 1.0 / n2)
-    b1 = so3.cross(b2, b3)
+        b2 = cross(b3, (-math.sin(yaw), math.cos(yaw), 0.0))
+        b2 = cross(b2, b3)
+        n2 = norm(b2)
+    b2 = scale(b2, 1.0 / n2)
+    b1 = cross(b2, b3)
     return (b1[0], b2[0], b3[0], b1[1], b2[1], b3[1], b1[2], b2[2], b3[2])
 
 
-@njit(cache=True)
+@kernel
 def quat_to_rot(q0, q1, q2, q3):
     """Hamilton [w,x,y,z] -> row-major R (body -> NED); mirrors companion.frames."""
     n = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
@@ -144,28 +144,28 @@ def quat_to_rot(q0, q1, q2, q3):
             2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
 
 
-@njit(cache=True)
+@kernel
 def attitude_law(rot, rot_d, om, om_d, prm):
     """eq. 7-9 with Omegadot_d = 0. Gains are per unit inertia: k_R = J kR, k_Om = J kOm.
 
     Returns the body moment (3-tuple, N m).
     """
     j = (prm[CP_JXX], prm[CP_JYY], prm[CP_JZZ])
-    rdt_r = so3.mattmul(rot_d, rot)
+    rdt_r = mattmul(rot_d, rot)
     # eq. 7: e_R = 1/2 vee(R_d^T R - R^T R_d); vee of (A - A^T) is twice vee's antisymmetric part
     e_r = (0.5 * (rdt_r[7] - rdt_r[5]), 0.5 * (rdt_r[2] - rdt_r[6]), 0.5 * (rdt_r[3] - rdt_r[1]))
-    om_d_body = so3.mattvec(rdt_r, om_d)          # R^T R_d Omega_d
-    e_om = so3.sub(om, om_d_body)
+    om_d_body = mattvec(rdt_r, om_d)          # R^T R_d Omega_d
+    e_om = sub(om, om_d_body)
     kr, kom = prm[CP_KR], prm[CP_KOM]
-    jom = so3.mul(j, om)
-    gyro = so3.cross(om, jom)                     # Omega x J Omega
-    ff = so3.mul(j, so3.cross(om, om_d_body))     # J hat(Omega) R^T R_d Omega_d
+    jom = mul(j, om)
+    gyro = cross(om, jom)                     # Omega x J Omega
+    ff = mul(j, cross(om, om_d_body))     # J hat(Omega) R^T R_d Omega_d
     return (-kr * j[0] * e_r[0] - kom * j[0] * e_om[0] + gyro[0] - ff[0],
             -kr * j[1] * e_r[1] - kom * j[1] * e_om[1] + gyro[1] - ff[1],
             -kr * j[2] * e_r[2] - kom * j[2] * e_om[2] + gyro[2] - ff[2])
 
 
-@njit(cache=True)
+@kernel
 def attitude_mode_target(sp, prm):
     """(R_d, f, Omega_d) of an attitude-mode setpoint (att_q_wxyz finite).
 
@@ -181,7 +181,7 @@ def attitude_mode_target(sp, prm):
     return rot_d, f, om_d
 
 
-@njit(cache=True)
+@kernel
 def _axis_accel(p, v, sp, k, kx, kv):
     """PD acceleration command on one NED axis k with PX4 offboard masks (eq. 12-13)."""
     a = sp[SP_ACC + k]
@@ -194,42 +194,53 @@ def _axis_accel(p, v, sp, k, kx, kv):
     return a
 
 
-@njit(cache=True)
+@kernel
+def position_law(pos, vel, rot, sp, prm):
+    """eq. 12-16 for a position-family setpoint row: (R_d 9-tuple, f [N], Omega_d 3-tuple).
+
+    The autopilot's inner loop runs it at the physics rate; a companion in attitude
+    output mode runs it at its setpoint rate and sends R_d and f as SET_ATTITUDE_TARGET.
+    """
+    kx, kv = prm[CP_KX], prm[CP_KV]
+    ax = _axis_accel(pos, vel, sp, 0, kx, kv)
+    ay = _axis_accel(pos, vel, sp, 1, kx, kv)
+    az = _axis_accel(pos, vel, sp, 2, kx, kv)
+    t = thrust_vector(ax, ay, az, prm)
+    tn = norm(t)
+    b3d = (-t[0] / tn, -t[1] / tn, -t[2] / tn)
+    yaw_d, yaw_rate = yaw_target(rot, sp)
+    rot_d = desired_rot(b3d, yaw_d)
+    # eq. 14: f = -t . R e3 (projection on the current body axis)
+    f = -(t[0] * rot[2] + t[1] * rot[5] + t[2] * rot[8])
+    f = min(max(f, 0.0), prm[CP_FMAX])
+    # yaw rate about world e3, expressed in the desired body frame: R_d^T e3 * rate
+    om_d = (rot_d[6] * yaw_rate, rot_d[7] * yaw_rate, rot_d[8] * yaw_rate)
+    return rot_d, f, om_d
+
+
+@kernel
 def geometric_core(pos, vel, rot, om, sp, prm):
     """One vehicle: (f [N], M [N m] 3-tuple) from state tuples and a packed setpoint row."""
     if math.isfinite(sp[SP_Q]):
         rot_d, f, om_d = attitude_mode_target(sp, prm)
     else:
-        kx, kv = prm[CP_KX], prm[CP_KV]
-        ax = _axis_accel(pos, vel, sp, 0, kx, kv)
-        ay = _axis_accel(pos, vel, sp, 1, kx, kv)
-        az = _axis_accel(pos, vel, sp, 2, kx, kv)
-        t = thrust_vector(ax, ay, az, prm)
-        tn = so3.norm(t)
-        b3d = (-t[0] / tn, -t[1] / tn, -t[2] / tn)
-        yaw_d, yaw_rate = yaw_target(rot, sp)
-        rot_d = desired_rot(b3d, yaw_d)
-        # eq. 14: f = -t . R e3 (projection on the current body axis)
-        f = -(t[0] * rot[2] + t[1] * rot[5] + t[2] * rot[8])
-        f = min(max(f, 0.0), prm[CP_FMAX])
-        # yaw rate about world e3, expressed in the desired body frame: R_d^T e3 * rate
-        om_d = (rot_d[6] * yaw_rate, rot_d[7] * yaw_rate, rot_d[8] * yaw_rate)
+        rot_d, f, om_d = position_law(pos, vel, rot, sp, prm)
     m = attitude_law(rot, rot_d, om, om_d, prm)
     return f, m
 
 
-@njit(cache=True)
+@kernel
 def _geometric_batch(pos, vel, rot, om, sp, prm, thrust_out, moment_out):
     for i in range(pos.shape[0]):
         f, m = geometric_core((pos[i, 0], pos[i, 1], pos[i, 2]), (vel[i, 0], vel[i, 1], vel[i, 2]),
-                              so3.load_mat(rot, i), (om[i, 0], om[i, 1], om[i, 2]), sp[i], prm)
+                              load_mat(rot, i), (om[i, 0], om[i, 1], om[i, 2]), sp[i], prm)
         thrust_out[i] = f
         moment_out[i, 0], moment_out[i, 1], moment_out[i, 2] = m
 
 
 def geometric_control(state: FleetState, sp: FleetSetpoint, vp: VehicleParams,
                       gains: GeometricGains) -> tuple[np.ndarray, np.ndarray]:
-    """Geometric controller for a fleet (same njit core as the physics stepper).
+    """Geometric controller for a fleet (the same core the physics stepper compiles).
 
     Args:
         state: FleetState with N vehicles.

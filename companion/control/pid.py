@@ -25,9 +25,8 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
-
-from companion.control import so3
+from companion.control.kernel import kernel
+from companion.control.so3 import load_mat, norm
 from companion.control.geometric import (
     CP_FMAX, CP_G, CP_JXX, CP_JYY, CP_JZZ, CP_KOM, CP_KR, CP_KV, CP_KX, CP_P_ATT, CP_P_VEL,
     SP_ACC, SP_POS, SP_Q, SP_VEL, attitude_mode_target, pack_control_params, pack_setpoint,
@@ -42,17 +41,17 @@ VEL_INTEGRAL_AUTHORITY_G = 0.3
 """|k_v p_v xi_vel| is clamped to this many g."""
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _wrap(a):
     return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def _clamp(x, lim):
     return min(max(x, -lim), lim)
 
 
-@njit(cache=True)
+@kernel
 def _axis_pid(p, v, sp, k, kx, kv, pv, xi):
     """(a_k, xi_k') of one NED axis with the offboard masks."""
     a = sp[SP_ACC + k]
@@ -71,7 +70,7 @@ def _axis_pid(p, v, sp, k, kx, kv, pv, xi):
     return a, 0.0
 
 
-@njit(cache=True)
+@kernel
 def pid_core(pos, vel, rot, om, sp, prm, xi, dt):
     """One vehicle: (f [N], M [N m] 3-tuple, xi' 6-tuple) advancing the integrators by dt."""
     kr, kom, pa = prm[CP_KR], prm[CP_KOM], prm[CP_P_ATT]
@@ -91,7 +90,7 @@ def pid_core(pos, vel, rot, om, sp, prm, xi, dt):
         vlim = VEL_INTEGRAL_AUTHORITY_G * prm[CP_G] / (kv * pv) if kv * pv > 0.0 else 1.0
         xv0, xv1, xv2 = _clamp(xv0 + dt * d0, vlim), _clamp(xv1 + dt * d1, vlim), _clamp(xv2 + dt * d2, vlim)
         t = thrust_vector(ax, ay, az, prm)
-        tn = so3.norm(t)
+        tn = norm(t)
         yaw_d, yaw_rate = yaw_target(rot, sp)
         # desired roll/pitch: b3d = -t/|t| seen in the yaw-only frame is Ry(pitch) Rx(roll) e3
         cy, sy = math.cos(yaw_d), math.sin(yaw_d)
@@ -115,12 +114,12 @@ def pid_core(pos, vel, rot, om, sp, prm, xi, dt):
     return f, m, xi_new
 
 
-@njit(cache=True)
+@kernel
 def _pid_batch(pos, vel, rot, om, integ, sp, prm, dt, thrust_out, moment_out):
     for i in range(pos.shape[0]):
         xi = (integ[i, 0], integ[i, 1], integ[i, 2], integ[i, 3], integ[i, 4], integ[i, 5])
         f, m, xi = pid_core((pos[i, 0], pos[i, 1], pos[i, 2]), (vel[i, 0], vel[i, 1], vel[i, 2]),
-                            so3.load_mat(rot, i), (om[i, 0], om[i, 1], om[i, 2]), sp[i], prm, xi, dt)
+                            load_mat(rot, i), (om[i, 0], om[i, 1], om[i, 2]), sp[i], prm, xi, dt)
         thrust_out[i] = f
         moment_out[i, 0], moment_out[i, 1], moment_out[i, 2] = m
         for k in range(6):

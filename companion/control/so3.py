@@ -1,7 +1,7 @@
-"""SO(3) algebra for the per-vehicle numba cores, plus thin numpy wrappers.
+"""SO(3) algebra for the per-vehicle kernels, plus thin numpy wrappers.
 
-The njit functions work on tuples so that nothing is heap-allocated inside the
-physics loop: a vector is a 3-tuple, a matrix a row-major 9-tuple
+The kernels (companion.control.kernel) work on tuples so that nothing is
+heap-allocated inside the compiled physics loop: a vector is a 3-tuple, a matrix a row-major 9-tuple
 ``(r00, r01, r02, r10, r11, r12, r20, r21, r22)``.
 """
 from __future__ import annotations
@@ -9,53 +9,55 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
+
+from companion.control.kernel import kernel
+from companion.frames import rotvec_to_rot
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def dot(a, b):
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def cross(a, b):
     return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def norm(a):
     return math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def scale(a, s):
     return (a[0] * s, a[1] * s, a[2] * s)
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def add(a, b):
     return (a[0] + b[0], a[1] + b[1], a[2] + b[2])
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def sub(a, b):
     return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def mul(a, b):
     """Element-wise product (diagonal matrix times vector)."""
     return (a[0] * b[0], a[1] * b[1], a[2] * b[2])
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def matvec(m, v):
     return (m[0] * v[0] + m[1] * v[1] + m[2] * v[2],
             m[3] * v[0] + m[4] * v[1] + m[5] * v[2],
             m[6] * v[0] + m[7] * v[1] + m[8] * v[2])
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def mattvec(m, v):
     """m.T @ v."""
     return (m[0] * v[0] + m[3] * v[1] + m[6] * v[2],
@@ -63,7 +65,7 @@ def mattvec(m, v):
             m[2] * v[0] + m[5] * v[1] + m[8] * v[2])
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def matmul(a, b):
     return (a[0] * b[0] + a[1] * b[3] + a[2] * b[6], a[0] * b[1] + a[1] * b[4] + a[2] * b[7],
             a[0] * b[2] + a[1] * b[5] + a[2] * b[8],
@@ -73,30 +75,30 @@ def matmul(a, b):
             a[6] * b[2] + a[7] * b[5] + a[8] * b[8])
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def transpose(a):
     return (a[0], a[3], a[6], a[1], a[4], a[7], a[2], a[5], a[8])
 
 
-@njit(cache=True, inline="always")
+@kernel(inline="always")
 def mattmul(a, b):
     """a.T @ b."""
     return matmul(transpose(a), b)
 
 
-@njit(cache=True)
+@kernel
 def hat(w):
     """Skew matrix of w (eq. 5): hat(w) @ v == cross(w, v)."""
     return (0.0, -w[2], w[1], w[2], 0.0, -w[0], -w[1], w[0], 0.0)
 
 
-@njit(cache=True)
+@kernel
 def vee(m):
     """Inverse of hat, taken from the antisymmetric part (robust to round-off)."""
     return (0.5 * (m[7] - m[5]), 0.5 * (m[2] - m[6]), 0.5 * (m[3] - m[1]))
 
 
-@njit(cache=True)
+@kernel
 def exp_so3(w):
     """Rodrigues: exp(hat(w)) = I + sin(a)/a hat(w) + (1 - cos a)/a^2 hat(w)^2, a = |w|.
 
@@ -116,7 +118,7 @@ def exp_so3(w):
             -s * y + c * x * z, s * x + c * y * z, 1.0 - c * (x * x + y * y))
 
 
-@njit(cache=True)
+@kernel
 def orthonormalize(m):
     """Nearest-ish rotation by Gram-Schmidt on the columns (b3 kept exact, then b1)."""
     b3 = (m[2], m[5], m[8])
@@ -128,14 +130,14 @@ def orthonormalize(m):
     return (b1[0], b2[0], b3[0], b1[1], b2[1], b3[1], b1[2], b2[2], b3[2])
 
 
-@njit(cache=True)
+@kernel
 def load_mat(a, i):
     """Row-major 9-tuple from a (N, 3, 3) array row i."""
     return (a[i, 0, 0], a[i, 0, 1], a[i, 0, 2], a[i, 1, 0], a[i, 1, 1], a[i, 1, 2],
             a[i, 2, 0], a[i, 2, 1], a[i, 2, 2])
 
 
-@njit(cache=True)
+@kernel
 def store_mat(a, i, m):
     a[i, 0, 0], a[i, 0, 1], a[i, 0, 2] = m[0], m[1], m[2]
     a[i, 1, 0], a[i, 1, 1], a[i, 1, 2] = m[3], m[4], m[5]
@@ -162,15 +164,8 @@ def vee_np(m: np.ndarray) -> np.ndarray:
 
 
 def exp_so3_np(w: np.ndarray) -> np.ndarray:
-    """(..., 3) rotation vectors -> (..., 3, 3) rotation matrices (Rodrigues)."""
-    w = np.asarray(w, float)
-    a2 = np.sum(w * w, axis=-1)[..., None, None]
-    small = a2 < 1e-8
-    a = np.sqrt(np.where(small, 1.0, a2))
-    s = np.where(small, 1.0 - a2 / 6.0, np.sin(a) / a)
-    c = np.where(small, 0.5 - a2 / 24.0, (1.0 - np.cos(a)) / np.where(small, 1.0, a2))
-    h = hat_np(w)
-    return np.eye(3) + s * h + c * (h @ h)
+    """(..., 3) rotation vectors -> (..., 3, 3) rotation matrices (Rodrigues; see frames.rotvec_to_rot)."""
+    return rotvec_to_rot(w)
 
 
 def orthonormalize_np(m: np.ndarray) -> np.ndarray:

@@ -282,3 +282,17 @@ def describe(W: np.ndarray) -> str:
             if np.array_equal(W, build(n, w)):
                 return f"{name}({n}{suffix})"
     return f"graph(N={n}, {links} links)"
+
+
+def neighbour_table(W: np.ndarray) -> np.ndarray:
+    """(N, K) int64 table of who each vehicle hears: row i lists the j != i with
+    W[i, j] != 0 in increasing order, padded with -1; K = the largest in-degree (>= 1).
+    """
+    W = np.asarray(W)
+    n = W.shape[0]
+    lists = [[j for j in np.flatnonzero(W[i]) if j != i] for i in range(n)]
+    k = max(1, max((len(x) for x in lists), default=0))
+    out = np.full((n, k), -1, dtype=np.int64)
+    for i, x in enumerate(lists):
+        out[i, :len(x)] = x
+    return out

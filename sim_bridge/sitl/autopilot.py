@@ -1,23 +1,36 @@
-"""Per-vehicle PX4-like flight state machine: pure logic, no sockets, no pymavlink.
+"""Per-vehicle flight state machine of the SITL: pure logic, no sockets.
 
-One Autopilot per simulated vehicle. It reads the vehicle's row of the shared
-FleetState, decides modes, arming, failsafes, landing and throw recovery, and
-publishes the inner-loop setpoint of its vehicle in `sp` (a one-row FleetSetpoint;
-`sp_version` increments on every change). Times are simulation seconds passed in
-by the caller (injected clock). Human-readable events queue up in `events` as
-(MAV_SEVERITY, text) for STATUSTEXT.
+One Autopilot per simulated vehicle, speaking one autopilot dialect (PX4 or
+ArduCopter, companion.link.dialects): the dialect gives the mode numbers and
+flags; this module gives the behaviour, with the differences that matter to a
+companion (docs/sitl.md): PX4 stores offboard setpoints in any mode, needs a live
+stream to enter OFFBOARD and fails over to Hold then Land; ArduPilot flies
+setpoints only in GUIDED, enters GUIDED without a stream, and at GUID_TIMEOUT
+stops (or levels) but stays in GUIDED.
+
+It reads its vehicle's row of the shared FleetState (world NED frame) and
+publishes the inner-loop setpoint in `sp` (a one-row FleetSetpoint, world frame;
+`sp_version` increments on every change). Offboard setpoints arrive in the
+vehicle's local frame (relative to its EKF origin) and are converted here. Times
+are simulation seconds passed in by the caller. Human-readable events queue up in
+`events` as (MAV_SEVERITY, text) for STATUSTEXT.
 """
 from __future__ import annotations
 
 import math
-from enum import IntEnum
 
 import numpy as np
 
-from companion.state import FleetSetpoint, FleetState
 from companion.frames import rot_to_quat_wxyz
-from sim_bridge.sitl.offboard import AttitudeSetpoint, TrajectorySetpoint
-from sim_bridge.sitl.params_table import ParamTable
+from companion.link.dialects import AutopilotDialect, Mode
+from companion.link.dialects.base import (LANDED_IN_AIR, LANDED_LANDING, LANDED_ON_GROUND, LANDED_TAKEOFF, STATE_ACTIVE,
+                                          STATE_CRITICAL, STATE_FLIGHT_TERMINATION, STATE_STANDBY)
+from companion.link.dialects.ardupilot import ANGLE_BOOST_COS_MIN, BRAKE, GUIDED, LAND, LOITER, THROW
+from companion.link.setpoints import AttitudeSetpoint, TrajectorySetpoint
+from companion.params import GRAVITY_MPS2
+from companion.state import FleetSetpoint, FleetState
+from sim_bridge.autopilot_model import hold_point, throw_recovered
+from sim_bridge.sitl.params_table import Knobs, ParamTable
 
 # MAV_RESULT
 ACCEPTED, TEMPORARILY_REJECTED, DENIED, UNSUPPORTED, FAILED = 0, 1, 2, 3, 4
@@ -29,46 +42,27 @@ ON_GROUND_TOL_M = 0.02
 AIRBORNE_HEIGHT_M = 0.15
 LAND_DETECT_S = 0.2
 LAND_SPEED_MAX_MPS = 0.3
-HOLD_BRAKE_MPS2 = 3.0
-HOLD_BRAKE_MAX_M = 10.0
-
-
-class Mode(IntEnum):
-    """PX4 custom_mode = main << 16 | sub << 24."""
-
-    MANUAL = 1 << 16
-    POSCTL = 3 << 16
-    OFFBOARD = 6 << 16
-    TAKEOFF = (4 << 16) | (2 << 24)
-    HOLD = (4 << 16) | (3 << 24)
-    LAND = (4 << 16) | (6 << 24)
-
-
-MODE_BY_MAIN_SUB = {(3, 0): Mode.POSCTL, (6, 0): Mode.OFFBOARD, (4, 2): Mode.TAKEOFF,
-                    (4, 3): Mode.HOLD, (4, 6): Mode.LAND}
-MODE_NAMES = {Mode.MANUAL: "Manual", Mode.POSCTL: "Position", Mode.OFFBOARD: "Offboard",
-              Mode.TAKEOFF: "Takeoff", Mode.HOLD: "Hold", Mode.LAND: "Land"}
-
-
-class LandedState(IntEnum):
-    UNDEFINED = 0
-    ON_GROUND = 1
-    IN_AIR = 2
-    TAKEOFF = 3
-    LANDING = 4
+SETTABLE = frozenset({Mode.POSITION, Mode.OFFBOARD, Mode.TAKEOFF, Mode.HOLD, Mode.LAND, Mode.THROW})
+"""Modes a DO_SET_MODE may ask for (no RC: Manual and Return are refused)."""
+_NEXT_MODE = {GUIDED: Mode.OFFBOARD, LOITER: Mode.POSITION, BRAKE: Mode.HOLD, LAND: Mode.LAND, THROW: Mode.THROW}
 
 
 class Autopilot:
-    def __init__(self, index: int, sysid: int, params: ParamTable, state: FleetState,
+    def __init__(self, index: int, sysid: int, params: ParamTable, dialect: AutopilotDialect, state: FleetState,
                  ground_z_m: float, home_ned_m: np.ndarray, docked: bool = False, now_s: float = 0.0):
         self.index = index
         self.sysid = sysid
         self.params = params
+        self.knobs = Knobs(params, dialect)
+        self.dialect = dialect
+        self.px4 = dialect.name == "px4"
         self.state = state
         self.ground_z_m = ground_z_m
         self.home_ned_m = np.asarray(home_ned_m, dtype=float)
+        self.origin_ned_m: np.ndarray | None = None
+        """EKF origin in the world frame; None until the first GNSS fix."""
         self.armed = False
-        self.mode = Mode.HOLD
+        self.mode = Mode.THROW if docked and dialect.carrier_mode == Mode.THROW else Mode.HOLD
         self.docked = docked
         self.throwing = False
         self.release_requested = False
@@ -80,8 +74,11 @@ class Autopilot:
         self.events: list[tuple[int, str]] = []
         self.changed = False
         """Set on any mode or arming change; the server then sends a HEARTBEAT at once."""
+        self.setpoints_ignored = 0
+        """Offboard setpoints dropped because the mode does not fly them (ArduPilot outside GUIDED)."""
         self._offb: TrajectorySetpoint | AttitudeSetpoint | None = None
         self._offb_last_t = -math.inf
+        self._offb_timed_out = False
         self._failsafe_t: float | None = None
         self._ground_since_t: float | None = now_s
         self._landed_t = now_s
@@ -113,35 +110,36 @@ class Autopilot:
         r = self.rot
         return math.atan2(r[1, 0], r[0, 0])
 
+    @property
+    def has_fix(self) -> bool:
+        return self.origin_ned_m is not None
+
     # ---- reported state ------------------------------------------------------
     @property
     def custom_mode(self) -> int:
-        return int(self.mode)
+        return self.dialect.custom_mode(self.mode)
 
     @property
     def base_mode(self) -> int:
-        flags = 1 | 16  # CUSTOM_MODE_ENABLED | STABILIZE_ENABLED
-        if self.mode in (Mode.TAKEOFF, Mode.HOLD, Mode.LAND, Mode.OFFBOARD):
-            flags |= 4 | 8  # AUTO | GUIDED
-        elif self.mode == Mode.POSCTL:
-            flags |= 64  # MANUAL_INPUT
-        return flags | (128 if self.armed else 0)
+        return self.dialect.base_mode(self.mode, self.armed)
 
     @property
     def system_status(self) -> int:
         if self._failsafe_t is not None:
-            return 5  # MAV_STATE_CRITICAL
-        return 4 if self.armed else 3  # ACTIVE / STANDBY
+            return STATE_CRITICAL
+        if self.armed and self.docked and self.px4:
+            return STATE_FLIGHT_TERMINATION  # as PX4 while throw launch holds the motors locked
+        return STATE_ACTIVE if self.armed else STATE_STANDBY
 
     @property
-    def landed_state(self) -> LandedState:
+    def landed_state(self) -> int:
         if self.landed:
-            return LandedState.ON_GROUND
+            return LANDED_ON_GROUND
         if self.mode == Mode.TAKEOFF and self.armed:
-            return LandedState.TAKEOFF
+            return LANDED_TAKEOFF
         if self.mode == Mode.LAND:
-            return LandedState.LANDING
-        return LandedState.IN_AIR
+            return LANDED_LANDING
+        return LANDED_IN_AIR
 
     @property
     def needs_physics(self) -> bool:
@@ -155,14 +153,16 @@ class Autopilot:
         return self._fence_breached
 
     def offboard_live(self, now_s: float) -> bool:
-        return self._offb is not None and now_s - self._offb_last_t <= self.params["COM_OF_LOSS_T"]
+        return self._offb is not None and now_s - self._offb_last_t <= self.knobs.offboard_timeout_s
 
     def prearm_failure(self, now_s: float) -> str | None:
-        if self.docked:
-            return "docked on carrier"
+        if self.docked and not (self.knobs.throw_enabled and (self.px4 or self.mode == Mode.THROW)):
+            return "docked on carrier"  # (with throw launch set up, arming on the carrier is the normal flow)
+        if not self.has_fix:
+            return "no GNSS fix"
         if self._fence_breached:
             return "geofence breached"
-        if self.mode == Mode.OFFBOARD and not self.offboard_live(now_s):
+        if self.px4 and self.mode == Mode.OFFBOARD and not self.offboard_live(now_s):
             return "no offboard signal"
         return None
 
@@ -175,7 +175,7 @@ class Autopilot:
             if self.armed:
                 return ACCEPTED
             why = self.prearm_failure(now_s)
-            if why is None and not self.landed and not force:
+            if why is None and not self.landed and not force and not self.docked:
                 why = "not landed"
             if why is not None and not force:
                 self._event(SEV_CRITICAL, f"Arming denied: {why}")
@@ -190,13 +190,18 @@ class Autopilot:
         self._disarm(now_s, "Disarmed by external command")
         return ACCEPTED
 
-    def command_takeoff(self, alt_amsl_m: float, home_alt_amsl_m: float, now_s: float) -> int:
+    def command_takeoff(self, param7: float, home_alt_amsl_m: float, now_s: float) -> int:
+        """PX4: param7 = AMSL altitude (NaN: MIS_TAKEOFF_ALT), any mode. ArduPilot: param7 =
+        altitude above home (0/NaN: PILOT_TKOFF_ALT), armed in GUIDED only."""
         if self.docked:
             return TEMPORARILY_REJECTED
-        if math.isfinite(alt_amsl_m):
-            alt_rel = alt_amsl_m - home_alt_amsl_m
+        if self.px4:
+            alt_rel = param7 - home_alt_amsl_m if math.isfinite(param7) else self.knobs.takeoff_alt_m
         else:
-            alt_rel = self.params["MIS_TAKEOFF_ALT"]
+            if self.mode != Mode.OFFBOARD or not self.armed:
+                self._event(SEV_CRITICAL, "Takeoff: arm in GUIDED first")
+                return FAILED
+            alt_rel = param7 if math.isfinite(param7) and param7 > 0 else self.knobs.takeoff_alt_m
         if alt_rel < 0.1:
             return DENIED
         self._tko_target_z = self.home_ned_m[2] - alt_rel
@@ -213,25 +218,26 @@ class Autopilot:
         return ACCEPTED
 
     def command_set_mode(self, base: float, main: float, sub: float, now_s: float) -> int:
-        if not (math.isfinite(base) and math.isfinite(main)):
+        mode = self.dialect.mode_from_set_mode(base, main, sub)
+        if mode is None or mode not in SETTABLE or mode not in self.dialect.modes:
             return DENIED
-        if not int(base) & 1:
-            return DENIED
-        main_i = int(main)
-        sub_i = int(sub) if math.isfinite(sub) and main_i == 4 else 0
-        mode = MODE_BY_MAIN_SUB.get((main_i, sub_i))
-        if mode is None:
-            return DENIED
-        if self.docked:
+        if self.docked and mode != self.dialect.carrier_mode:
             return TEMPORARILY_REJECTED
         if mode == self.mode:
             self._failsafe_t = None
             return ACCEPTED
-        if mode == Mode.OFFBOARD and not self.offboard_live(now_s):
+        if mode == Mode.THROW and self.armed:
+            self._event(SEV_CRITICAL, "Throw: select before arming")
+            return TEMPORARILY_REJECTED
+        if mode == Mode.OFFBOARD and not self.has_fix:
+            return TEMPORARILY_REJECTED
+        if mode == Mode.OFFBOARD and self.px4 and not self.offboard_live(now_s):
             self._event(SEV_CRITICAL, "Switching to Offboard is currently not available")
             return TEMPORARILY_REJECTED
         if mode == Mode.TAKEOFF:
-            self._tko_target_z = self.home_ned_m[2] - self.params["MIS_TAKEOFF_ALT"]
+            self._tko_target_z = self.home_ned_m[2] - self.knobs.takeoff_alt_m
+        if mode == Mode.OFFBOARD and not self.px4:
+            self._offb = None  # GUIDED starts holding; only setpoints sent from now on count
         self._set_mode(mode, now_s)
         return ACCEPTED
 
@@ -241,12 +247,34 @@ class Autopilot:
         self.release_requested = True
         return ACCEPTED
 
+    # ---- origin ----------------------------------------------------------------
+    def set_origin(self, origin_ned_m: np.ndarray, now_s: float, requested: bool = False) -> bool:
+        """The EKF origin: set at the first fix; a later request moves it (PX4) or not (ArduPilot)."""
+        if requested and self.has_fix and not self.px4:
+            return False  # ArduPilot ignores SET_GPS_GLOBAL_ORIGIN once it has an origin
+        self.origin_ned_m = np.asarray(origin_ned_m, float).copy()
+        self._event(SEV_INFO, "EKF origin set" if not requested else "EKF origin moved (local position reset)")
+        return True
+
     # ---- offboard setpoints -----------------------------------------------------
-    def on_offboard_setpoint(self, sp: TrajectorySetpoint | AttitudeSetpoint, now_s: float) -> None:
+    def on_offboard_setpoint(self, sp: TrajectorySetpoint | AttitudeSetpoint, now_s: float) -> bool:
+        """A setpoint in the vehicle's local frame; False if this mode ignores it."""
+        if not self.px4 and self.mode != Mode.OFFBOARD:
+            self.setpoints_ignored += 1
+            return False
+        if isinstance(sp, TrajectorySetpoint) and np.isfinite(sp.pos_ned_m).any():
+            if not self.has_fix:
+                self.setpoints_ignored += 1
+                return False
+            sp = TrajectorySetpoint(sp.pos_ned_m + self.origin_ned_m, sp.vel_ned_mps, sp.acc_ned_mps2, sp.yaw_rad,
+                                    sp.yaw_rate_radps)
         self._offb = sp
         self._offb_last_t = now_s
+        if self._offb_timed_out:
+            self._offb_timed_out = False
         if self.mode == Mode.OFFBOARD:
             self._publish()
+        return True
 
     # ---- events from the server -------------------------------------------------
     def on_released(self, now_s: float) -> None:
@@ -255,12 +283,14 @@ class Autopilot:
         self.release_requested = False
         self.landed = False
         self._ground_since_t = None
-        if self.params["COM_THROW_EN"] >= 1:
+        if self.knobs.throw_enabled:
+            if not self.armed:  # SITL convenience: the carrier arms a vehicle nobody armed
+                self._event(SEV_INFO, "Armed by the carrier at release")
             self.armed = True
             self._armed_t = now_s
             self._airborne_since_arm = True
             self.throwing = True
-            self.mode = Mode.TAKEOFF
+            self.mode = Mode.TAKEOFF if self.px4 else Mode.THROW
             self.changed = True
             self._event(SEV_INFO, "Released from carrier: throw launch, stabilising")
         else:
@@ -274,33 +304,45 @@ class Autopilot:
         if self.docked:
             return
         self._detect_landing(now_s)
-        p = self.params
+        k = self.knobs
         if self.armed:
             if self._airborne_since_arm:
-                t_land = p["COM_DISARM_LAND"]
+                t_land = k.disarm_land_s
                 if self.landed and t_land >= 0 and now_s - self._landed_t >= t_land:
                     self._disarm(now_s, "Disarmed by auto disarm after landing")
             else:
-                t_pre = p["COM_DISARM_PRFLT"]
+                t_pre = k.disarm_preflight_s
                 if t_pre > 0 and now_s - self._armed_t >= t_pre:
                     self._disarm(now_s, "Disarmed by auto preflight disarming")
         if self.throwing:
             self._throw_progress(now_s)
-        if self.mode == Mode.OFFBOARD and not self.offboard_live(now_s):
-            self._set_mode(Mode.HOLD, now_s)
-            self._failsafe_t = now_s
-            self._event(SEV_CRITICAL, "Failsafe: offboard signal lost, Hold")
+        self._offboard_watchdog(now_s)
+        if self.mode == Mode.TAKEOFF and self.armed and not self.throwing:
+            self._takeoff_progress(now_s, dt)
+        if not self.px4 and self.mode == Mode.OFFBOARD and isinstance(self._offb, AttitudeSetpoint) \
+                and not self._offb_timed_out:
+            self._publish()  # ArduPilot's thrust follows the tilt (angle boost) or a climb rate
+        self._check_geofence(now_s)
+
+    # ---- internals ---------------------------------------------------------------
+    def _offboard_watchdog(self, now_s: float) -> None:
+        if self.mode == Mode.OFFBOARD and self._offb is not None and not self.offboard_live(now_s):
+            if self.px4:
+                self._set_mode(Mode.HOLD, now_s)
+                self._failsafe_t = now_s
+                self._event(SEV_CRITICAL, "Failsafe: offboard signal lost, Hold")
+            elif not self._offb_timed_out:
+                self._offb_timed_out = True  # GUID_TIMEOUT: stop (or level), stay in GUIDED
+                self._capture_hold()
+                self._event(SEV_WARNING, "GUIDED: setpoint timeout, stopping")
+                self._publish()
         elif self._failsafe_t is not None and self.mode == Mode.HOLD:
-            t_land = p["SD_OBL_LAND_T"]
+            t_land = self.knobs.loss_land_after_s
             if t_land >= 0 and now_s - self._failsafe_t >= t_land and not self.landed:
                 self._set_mode(Mode.LAND, now_s)
                 self._failsafe_t = now_s
                 self._event(SEV_CRITICAL, "Failsafe: offboard still lost, Land")
-        if self.mode == Mode.TAKEOFF and self.armed and not self.throwing:
-            self._takeoff_progress(now_s, dt)
-        self._check_geofence(now_s)
 
-    # ---- internals ---------------------------------------------------------------
     def _event(self, severity: int, text: str) -> None:
         self.events.append((severity, text))
 
@@ -325,23 +367,21 @@ class Autopilot:
         self.mode = mode
         self.changed = True
         self._failsafe_t = None
-        if mode != Mode.TAKEOFF:
+        self._offb_timed_out = False
+        if mode not in (Mode.TAKEOFF, Mode.THROW):
             self.throwing = False
         self._capture_hold()
         self._tko_sp_z = self.pos[2]
-        self._event(SEV_INFO, f"Mode: {MODE_NAMES[mode]}")
+        self._event(SEV_INFO, f"Mode: {self.dialect.mode_name(self.custom_mode)}")
         self._publish()
 
     def _capture_hold(self) -> None:
-        """Hold where the vehicle comes to rest braking at HOLD_BRAKE_MPS2 (as PX4 brakes first)."""
-        self._hold_pos = self.pos.copy()
+        """Hold where the vehicle comes to rest braking (as PX4 and ArduPilot brake first)."""
         if self.landed:
+            self._hold_pos = self.pos.copy()
             self._hold_pos[2] = max(self._hold_pos[2], self.ground_z_m)
         else:
-            v = self.vel
-            speed = float(np.linalg.norm(v))
-            if speed > 0.05:
-                self._hold_pos += v * min(speed / (2.0 * HOLD_BRAKE_MPS2), HOLD_BRAKE_MAX_M / speed)
+            self._hold_pos = hold_point(self.pos, self.vel)
             self._hold_pos[2] = min(self._hold_pos[2], self.ground_z_m)
         self._hold_yaw = self.yaw
 
@@ -355,7 +395,7 @@ class Autopilot:
                 self.landed = True
                 self._landed_t = now_s
                 self._event(SEV_INFO, "Landing detected")
-                if self.mode in (Mode.HOLD, Mode.POSCTL, Mode.LAND, Mode.TAKEOFF):
+                if self.mode in (Mode.HOLD, Mode.POSITION, Mode.LAND, Mode.TAKEOFF, Mode.OFFBOARD):
                     self._capture_hold()
                     self._publish()
         else:
@@ -367,35 +407,40 @@ class Autopilot:
                     self._event(SEV_INFO, "Takeoff detected")
 
     def _takeoff_progress(self, now_s: float, dt: float) -> None:
-        speed = self.params["MPC_TKO_SPEED"]
+        speed = self.knobs.takeoff_speed_mps
         target = self._tko_target_z
         self._tko_sp_z = max(target, self._tko_sp_z - speed * dt) if self._tko_sp_z > target \
             else min(target, self._tko_sp_z + speed * dt)
         if abs(self.pos[2] - target) < 0.1 and self._tko_sp_z == target:
-            self._set_mode(Mode.HOLD, now_s)
+            # PX4 switches to Hold; ArduCopter finishes its GUIDED take-off holding in GUIDED.
+            self._set_mode(Mode.HOLD if self.px4 else Mode.OFFBOARD, now_s)
+            self._offb = None if not self.px4 else self._offb
             self._hold_pos[2] = target
             self._publish()
             return
         self._publish()
 
     def _throw_progress(self, now_s: float) -> None:
-        p = self.params
-        tilt_deg = math.degrees(math.acos(max(-1.0, min(1.0, float(self.rot[2, 2])))))
         rate = float(np.linalg.norm(self.state.omega_body_radps[self.index]))
-        speed = float(np.linalg.norm(self.vel))
-        if tilt_deg < p["SD_THR_TILT"] and rate < p["SD_THR_RATE"] and speed < p["SD_THR_SPEED"]:
+        if throw_recovered(float(self.rot[2, 2]), rate, float(np.linalg.norm(self.vel)),
+                           *self.knobs.throw_thresholds()):
             self.throwing = False
-            self._set_mode(Mode.HOLD, now_s)
-            self._event(SEV_INFO, "Throw launch: stable, Hold (ready for offboard)")
+            if self.px4:
+                self._set_mode(Mode.HOLD, now_s)
+                self._event(SEV_INFO, "Throw launch: stable, Hold (ready for offboard)")
+            else:
+                self._event(SEV_INFO, "height achieved - controlling position")
+                nxt = _NEXT_MODE.get(int(self.params["THROW_NEXTMODE"]), Mode.THROW)
+                if nxt == Mode.OFFBOARD:
+                    self._offb = None
+                self._set_mode(nxt, now_s)
 
     def _check_geofence(self, now_s: float) -> None:
-        p = self.params
-        r_max, h_max = p["GF_MAX_HOR_DIST"], p["GF_MAX_VER_DIST"]
+        action, r_max, h_max = self.knobs.geofence()
         d = self.pos - self.home_ned_m
         breach = (r_max > 0 and math.hypot(d[0], d[1]) > r_max) or (h_max > 0 and -d[2] > h_max)
         if breach and not self._fence_breached:
             self._fence_breached = True
-            action = int(p["GF_ACTION"])
             self._event(SEV_CRITICAL, "Geofence violated")
             if self.armed and not self.landed:
                 if action == 2 and self.mode != Mode.HOLD:
@@ -407,49 +452,69 @@ class Autopilot:
         elif not breach:
             self._fence_breached = False
 
+    def _attitude_thrust(self, o: AttitudeSetpoint) -> float:
+        """Fraction of maximum collective thrust the inner loop gets for an attitude setpoint."""
+        if self.px4:
+            return o.thrust_norm
+        cos_tilt = float(self.rot[2, 2])
+        if self.knobs.thrust_is_thrust:
+            return self.dialect.collective_from_thrust_field(o.thrust_norm, cos_tilt)
+        # ArduPilot without GUID_OPTIONS bit 3: the field is a climb rate, 0.5 = hold height.
+        t = o.thrust_norm
+        k = self.knobs
+        climb = (t - 0.5) * 2.0 * (k.takeoff_speed_mps if t >= 0.5 else k.descent_speed_mps)
+        kv = self.params["SD_GEO_KV"]
+        a_up = kv * (climb + float(self.vel[2]))  # vel[2] is down
+        return min(1.0, max(0.0, k.hover_thrust * (1.0 + a_up / GRAVITY_MPS2) / max(cos_tilt, ANGLE_BOOST_COS_MIN)))
+
     def _publish(self) -> None:
         """Rebuild this vehicle's inner-loop setpoint from mode and arming state."""
         sp = self.sp
         for f in sp.__dataclass_fields__:
             getattr(sp, f)[...] = np.nan
         self.rates_only = False
+        offboard = self.mode == Mode.OFFBOARD and self._offb is not None and not self._offb_timed_out
         if not self.armed:
             sp.att_q_wxyz[0] = rot_to_quat_wxyz(self.rot[None])[0]
             sp.thrust_norm[0] = 0.0
             sp.body_rate_radps[0] = 0.0
         elif self.throwing:
             sp.vel_ned_mps[0] = 0.0
-            sp.yaw_rad[0] = self.yaw
-        elif self.mode == Mode.OFFBOARD and self._offb is not None:
+            sp.yaw_rad[0] = self._hold_yaw
+        elif offboard and isinstance(self._offb, TrajectorySetpoint):
             o = self._offb
-            if isinstance(o, TrajectorySetpoint):
-                sp.pos_ned_m[0] = o.pos_ned_m
-                sp.vel_ned_mps[0] = o.vel_ned_mps
-                sp.acc_ned_mps2[0] = o.acc_ned_mps2
-                sp.yaw_rad[0] = o.yaw_rad
-                sp.yaw_rate_radps[0] = o.yaw_rate_radps
-                if not (math.isfinite(o.yaw_rad) or math.isfinite(o.yaw_rate_radps)):
-                    sp.yaw_rad[0] = self._hold_yaw
+            sp.pos_ned_m[0] = o.pos_ned_m
+            sp.vel_ned_mps[0] = o.vel_ned_mps
+            sp.acc_ned_mps2[0] = o.acc_ned_mps2
+            sp.yaw_rad[0] = o.yaw_rad
+            sp.yaw_rate_radps[0] = o.yaw_rate_radps
+            if not (math.isfinite(o.yaw_rad) or math.isfinite(o.yaw_rate_radps)):
+                sp.yaw_rad[0] = self._hold_yaw
+        elif offboard:
+            o = self._offb
+            sp.thrust_norm[0] = self._attitude_thrust(o)
+            sp.body_rate_radps[0] = o.body_rate_radps
+            if o.att_q_wxyz is None:
+                self.rates_only = True
+                self.rate_q_reset = True
+                sp.att_q_wxyz[0] = rot_to_quat_wxyz(self.rot[None])[0]
             else:
-                sp.thrust_norm[0] = o.thrust_norm
-                sp.body_rate_radps[0] = o.body_rate_radps
-                if o.att_q_wxyz is None:
-                    self.rates_only = True
-                    self.rate_q_reset = True
-                    sp.att_q_wxyz[0] = rot_to_quat_wxyz(self.rot[None])[0]
-                else:
-                    sp.att_q_wxyz[0] = o.att_q_wxyz
+                sp.att_q_wxyz[0] = o.att_q_wxyz
+        elif self.mode == Mode.OFFBOARD and self._offb_timed_out and isinstance(self._offb, TrajectorySetpoint) \
+                and np.isfinite(self._offb.pos_ned_m).all():
+            sp.pos_ned_m[0] = self._offb.pos_ned_m  # GUID_TIMEOUT: the last position target, at rest
+            sp.yaw_rad[0] = self._hold_yaw
         elif self.mode == Mode.LAND:
             sp.pos_ned_m[0, :2] = self._hold_pos[:2]
-            sp.vel_ned_mps[0, 2] = self.params["MPC_LAND_SPEED"]
+            sp.vel_ned_mps[0, 2] = self.knobs.land_speed_mps
             sp.yaw_rad[0] = self._hold_yaw
         elif self.mode == Mode.TAKEOFF:
             sp.pos_ned_m[0] = (self._hold_pos[0], self._hold_pos[1], self._tko_sp_z)
             climbing = self._tko_sp_z != self._tko_target_z
             direction = -1.0 if self._tko_target_z < self._tko_sp_z else 1.0
-            sp.vel_ned_mps[0] = (0.0, 0.0, direction * self.params["MPC_TKO_SPEED"] if climbing else 0.0)
+            sp.vel_ned_mps[0] = (0.0, 0.0, direction * self.knobs.takeoff_speed_mps if climbing else 0.0)
             sp.yaw_rad[0] = self._hold_yaw
-        else:  # HOLD, POSCTL, MANUAL (no RC: behaves like Hold)
+        else:  # HOLD, POSITION, THROW (recovered), OFFBOARD without setpoints: hold
             sp.pos_ned_m[0] = self._hold_pos
             sp.yaw_rad[0] = self._hold_yaw
         self.sp_version += 1

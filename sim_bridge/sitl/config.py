@@ -11,6 +11,7 @@ from pydantic.dataclasses import dataclass
 from companion.config import STRICT, ConfigError, validate
 from companion.params import InnerLoopConfig, VehicleParams
 from sim_bridge.carrier import CarrierConfig
+from sim_bridge.transport import LinkConfig
 
 
 @dataclass(config=STRICT)
@@ -65,6 +66,14 @@ class TimeConfig:
     speed: float = Field(1.0, gt=0, le=1000)
     """Simulation seconds per wall second (free-running and lockstep-idle pacing)."""
     lockstep: bool = False
+    """Simulation time waits for the vehicles' companions (docs/sitl.md, "Lockstep")."""
+    lockstep_detach_s: float = Field(2.0, gt=0)
+    """Wall seconds after which a silent companion no longer holds the lockstep clock."""
+    epoch_unix_s: float | None = None
+    """SYSTEM_TIME.time_unix_usec = this + simulation time (None: the wall clock at start)."""
+    start_when_attached: int = Field(0, ge=0)
+    """The clock stays at 0 until this many vehicles have heard from a companion
+    (a fleet run starts its mission only when every agent is up)."""
     tick_s: float = Field(0.01, gt=0, le=0.1)
     """Outer step: setpoints are sampled, telemetry scheduled and lockstep gated per tick."""
     autopilot_rate_hz: float = Field(50.0, gt=0)
@@ -77,11 +86,31 @@ class SpawnConfig:
     launch: Literal["ground", "carrier"] = "ground"
     grid_spacing_m: float = Field(2.0, gt=0)
     """Ground spawn: vehicle k at a square grid position around the origin."""
+    gps_fix_delay_max_s: float = Field(0.0, ge=0)
+    """Each vehicle gets its first GNSS fix at a random time in [0, this] (seeded), and its
+    EKF origin where it is then: docked vehicles ride the carrier meanwhile, so origins differ."""
+
+
+@dataclass(config=STRICT)
+class MediumConfig:
+    """The simulated swarm radio (sim_bridge.sitl.medium): agents send their state to
+    one port, the medium forwards it to the vehicles in range with the link's faults."""
+
+    enabled: bool = False
+    port: int = Field(0, ge=0, le=65535)
+    """UDP port on bind_host (0 = ephemeral)."""
+    agent_base_port: int = Field(0, ge=0, le=65535)
+    """Vehicle k's agent listens on bind_host:agent_base_port+k (0: answer the address it sends from)."""
+    link: LinkConfig = LinkConfig()
+    swarm_rate_hz: float = Field(10.0, gt=0)
+    """How often agents publish (the mission's swarm.rate_hz; lockstep waits for these)."""
 
 
 @dataclass(config=STRICT)
 class SitlConfig:
     vehicles: int = Field(1, ge=1, le=250)
+    dialect: Literal["px4", "ardupilot"] = "px4"
+    """Which autopilot every vehicle behaves like (HEARTBEAT, modes, parameters, setpoint rules)."""
     seed: int = 0
     vehicle: VehicleParams = VehicleParams()
     inner_loop: InnerLoopConfig = InnerLoopConfig()
@@ -95,6 +124,7 @@ class SitlConfig:
     params: dict[str, float] = Field(default_factory=dict)
     """Parameter overrides applied to every vehicle at start (name -> value)."""
     tlog_path: str | None = None
+    medium: MediumConfig = MediumConfig()
 
 
 def load_config(path: str | Path | None, **overrides) -> SitlConfig:

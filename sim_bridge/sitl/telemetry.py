@@ -16,14 +16,12 @@ import numpy as np
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
+from companion.frames import ned_to_geodetic, rot_to_euler_zyx, rot_to_quat_wxyz  # noqa: E402
 from companion.state import FleetState  # noqa: E402
-from companion.frames import rot_to_euler_zyx, rot_to_quat_wxyz  # noqa: E402
 from sim_bridge.sitl.autopilot import Autopilot  # noqa: E402
 from sim_bridge.sitl.config import HomeConfig, StreamRates  # noqa: E402
 
-EARTH_RADIUS_M = 6371000.0
 MAV_TYPE_QUADROTOR = 2
-MAV_AUTOPILOT_PX4 = 12
 
 HEARTBEAT = 0
 SYS_STATUS = 1
@@ -33,6 +31,7 @@ ATTITUDE = 30
 ATTITUDE_QUATERNION = 31
 LOCAL_POSITION_NED = 32
 GLOBAL_POSITION_INT = 33
+GPS_GLOBAL_ORIGIN = 49
 BATTERY_STATUS = 147
 AUTOPILOT_VERSION = 148
 HOME_POSITION = 242
@@ -41,7 +40,7 @@ EXTENDED_SYS_STATE = 245
 STREAMS = (SYS_STATUS, SYSTEM_TIME, GPS_RAW_INT, ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED,
            GLOBAL_POSITION_INT, BATTERY_STATUS, HOME_POSITION, EXTENDED_SYS_STATE)
 """Messages streamed on simulation time (HEARTBEAT has its own wall-clock schedule)."""
-REQUESTABLE = frozenset(STREAMS) | {HEARTBEAT, AUTOPILOT_VERSION}
+REQUESTABLE = frozenset(STREAMS) | {HEARTBEAT, AUTOPILOT_VERSION, GPS_GLOBAL_ORIGIN}
 
 _RATE_FIELD = {SYS_STATUS: "sys_status", SYSTEM_TIME: "system_time", GPS_RAW_INT: "gps_raw_int",
                ATTITUDE: "attitude", ATTITUDE_QUATERNION: "attitude_quaternion",
@@ -72,9 +71,11 @@ class IntervalScheduler:
         self.col = {m: j for j, m in enumerate(msgids)}
         self.default_s = np.asarray(default_s, dtype=float)
         self.interval_s = np.tile(self.default_s, (n, 1))
-        phase = (np.arange(n)[:, None] + 0.5) / max(n, 1)
+        self.phase = (np.arange(n) + 0.5) / max(n, 1)
+        """Each vehicle's streams start this fraction of their interval late: the vehicles'
+        messages spread over the interval instead of all leaving in one tick."""
         finite = np.where(np.isfinite(self.interval_s), self.interval_s, 0.0)
-        self.next_s = start_s + phase * finite
+        self.next_s = start_s + self.phase[:, None] * finite
 
     def set_interval(self, k: int, msgid: int, interval_s: float | None, now_s: float) -> None:
         """None = back to default; inf = off."""
@@ -82,7 +83,12 @@ class IntervalScheduler:
         value = self.default_s[j] if interval_s is None else interval_s
         self.interval_s[k, j] = value
         if math.isfinite(value):
-            self.next_s[k, j] = now_s
+            # On the vehicle's own grid (multiples of the interval, shifted by its phase):
+            # streams with equal intervals fall in the same tick whenever they were requested
+            # (a companion gets position and attitude of one instant together), and the
+            # vehicles stay spread over the interval.
+            off = self.phase[k] * value
+            self.next_s[k, j] = math.ceil((now_s - off) / value - 1e-9) * value + off if value > 0 else now_s
 
     def interval(self, k: int, msgid: int) -> float:
         return float(self.interval_s[k, self.col[msgid]])
@@ -101,11 +107,21 @@ class IntervalScheduler:
         return ks, js
 
 
-def ned_to_geodetic(home: HomeConfig, ned_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Local NED (origin at home) -> lat_deg, lon_deg, alt_amsl_m (flat-earth, fine for km)."""
-    lat = home.lat_deg + np.degrees(ned_m[..., 0] / EARTH_RADIUS_M)
-    lon = home.lon_deg + np.degrees(ned_m[..., 1] / (EARTH_RADIUS_M * math.cos(math.radians(home.lat_deg))))
-    return lat, lon, home.alt_amsl_m - ned_m[..., 2]
+def world_to_geodetic(home: HomeConfig, ned_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """World NED (tangent frame at home) -> lat_deg, lon_deg, alt_amsl_m on the WGS-84
+    ellipsoid: the same conversion the agent uses (companion.frames)."""
+    return ned_to_geodetic(ned_m, home.lat_deg, home.lon_deg, home.alt_amsl_m)
+
+
+def quantised_origin(home: HomeConfig, origin_ned_m: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int]]:
+    """An EKF origin as GPS_GLOBAL_ORIGIN carries it (1e-7 deg, mm) and the world point
+    that is exactly that origin, so LOCAL_POSITION_NED and the origin agree to the bit."""
+    from companion.frames import geodetic_to_ned
+
+    lat, lon, alt = world_to_geodetic(home, np.asarray(origin_ned_m, float))
+    q = (int(round(float(lat) * 1e7)), int(round(float(lon) * 1e7)), int(round(float(alt) * 1e3)))
+    exact = geodetic_to_ned(q[0] * 1e-7, q[1] * 1e-7, q[2] * 1e-3, home.lat_deg, home.lon_deg, home.alt_amsl_m)
+    return exact, q
 
 
 @dataclass
@@ -115,62 +131,103 @@ class Snapshot:
     time_boot_ms: int
     rpy: np.ndarray
     quat: np.ndarray
-    lat_e7: np.ndarray
-    lon_e7: np.ndarray
-    alt_mm: np.ndarray
+    _geo: dict | None = None
 
 
 class TelemetryBuilder:
-    """Builds every telemetry message of the SITL from the fleet state and autopilots."""
+    """Builds every telemetry message of the SITL from the fleet state and autopilots.
+
+    Positions: the simulation runs in one world NED frame (the tangent frame at
+    `home`); each vehicle reports LOCAL_POSITION_NED relative to its own EKF origin
+    (autopilot.origin_ned_m, set at its first fix) and GLOBAL_POSITION_INT on the
+    WGS-84 ellipsoid. Time: time_boot_ms and SYSTEM_TIME run on simulation time, with
+    SYSTEM_TIME.time_unix_usec = epoch_unix_s + simulation time.
+    """
 
     def __init__(self, state: FleetState, autopilots: list[Autopilot], home: HomeConfig,
-                 home_ned_m: np.ndarray, boot_wall_s: float | None = None):
+                 home_ned_m: np.ndarray, epoch_unix_s: float | None = None):
         self.state = state
         self.aps = autopilots
         self.home = home
         self.home_ned_m = home_ned_m
         self.flight_time_s = np.zeros(state.n)
-        self.boot_wall_s = time.time() if boot_wall_s is None else boot_wall_s
-        hl, ho, ha = ned_to_geodetic(home, home_ned_m)
+        self.epoch_unix_s = float(round(time.time())) if epoch_unix_s is None else float(epoch_unix_s)
+        hl, ho, ha = world_to_geodetic(home, home_ned_m)
         self.home_lat_e7 = np.round(hl * 1e7).astype(np.int64)
         self.home_lon_e7 = np.round(ho * 1e7).astype(np.int64)
         self.home_alt_mm = np.round(ha * 1e3).astype(np.int64)
+        self.origin_e7: list[tuple[int, int, int] | None] = [None] * state.n
+        """GPS_GLOBAL_ORIGIN (lat 1e7, lon 1e7, alt mm) of each vehicle, None before its fix."""
         self._snap: Snapshot | None = None
 
     def snapshot(self, sim_s: float) -> Snapshot:
         s = self.state
-        lat, lon, alt = ned_to_geodetic(self.home, s.pos_ned_m)
-        self._snap = Snapshot(
-            time_boot_ms=int(round(sim_s * 1000)) & 0xFFFFFFFF, rpy=rot_to_euler_zyx(s.rot_body_to_ned),
-            quat=rot_to_quat_wxyz(s.rot_body_to_ned), lat_e7=np.round(lat * 1e7).astype(np.int64),
-            lon_e7=np.round(lon * 1e7).astype(np.int64), alt_mm=np.round(alt * 1e3).astype(np.int64))
+        self._snap = Snapshot(time_boot_ms=int(round(sim_s * 1000)) & 0xFFFFFFFF,
+                              rpy=rot_to_euler_zyx(s.rot_body_to_ned), quat=rot_to_quat_wxyz(s.rot_body_to_ned))
         return self._snap
+
+    def prepare_geodetic(self, ks) -> None:
+        """Convert the vehicles ks to WGS-84 in one vectorised call (a tick's GLOBAL_POSITION_INT
+        and GPS_RAW_INT then read it); pymap3d costs ~0.1 ms a call whatever its size."""
+        snap = self._snap
+        if snap is None or not len(ks):
+            return
+        if snap._geo is None:
+            snap._geo = {}
+        ks = [k for k in ks if k not in snap._geo]
+        if not ks:
+            return
+        lat, lon, alt = world_to_geodetic(self.home, self.state.pos_ned_m[ks])
+        for k, a, b, c in zip(ks, np.round(lat * 1e7).tolist(), np.round(lon * 1e7).tolist(),
+                              np.round(alt * 1e3).tolist()):
+            snap._geo[k] = (int(a), int(b), int(c))
+
+    def _geodetic(self, snap: Snapshot, k: int) -> tuple[int, int, int]:
+        """lat_e7, lon_e7, alt_mm of vehicle k now (computed once per snapshot and vehicle)."""
+        if snap._geo is None or k not in snap._geo:
+            self._snap = snap
+            self.prepare_geodetic([k])
+        return snap._geo[k]
 
     def heartbeat(self, k: int) -> mavlink.MAVLink_message:
         ap = self.aps[k]
-        return mavlink.MAVLink_heartbeat_message(MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_PX4, ap.base_mode,
+        return mavlink.MAVLink_heartbeat_message(MAV_TYPE_QUADROTOR, ap.dialect.autopilot_id, ap.base_mode,
                                                  ap.custom_mode, ap.system_status, 3)
 
     def statustext(self, severity: int, text: str) -> mavlink.MAVLink_message:
         return mavlink.MAVLink_statustext_message(severity, text.encode()[:50])
 
+    def gps_global_origin(self, k: int, sim_s: float) -> mavlink.MAVLink_message | None:
+        o = self.origin_e7[k]
+        if o is None:
+            return None
+        return mavlink.MAVLink_gps_global_origin_message(o[0], o[1], o[2], int(sim_s * 1e6))
+
     def autopilot_version(self, k: int) -> mavlink.MAVLink_message:
-        caps = 8 | 16 | 128 | 256 | 8192  # COMMAND_INT, PARAM_ENCODE_BYTEWISE, SET_ATT/POS_TARGET, MAVLINK2
+        # COMMAND_INT, SET_ATT/POS_TARGET, MAVLINK2 + how integer parameters travel
+        # (PX4: PARAM_ENCODE_BYTEWISE 16; ArduPilot: PARAM_FLOAT 2, C-cast by value).
+        caps = 8 | 128 | 256 | 8192 | (16 if self.aps[k].dialect.param_encoding == "bytewise" else 2)
         return mavlink.MAVLink_autopilot_version_message(
             caps, (1 << 24) | (15 << 16) | (0 << 8) | 255, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8,
             0x26AC, 0x0011, 0x5D00000000 + self.aps[k].sysid)
 
     def build(self, k: int, msgid: int, sim_s: float) -> mavlink.MAVLink_message | None:
-        """The current value of message msgid for vehicle k (None if not provided)."""
+        """The current value of message msgid for vehicle k (None if not provided now)."""
         if msgid == HEARTBEAT:
             return self.heartbeat(k)
         if msgid == AUTOPILOT_VERSION:
             return self.autopilot_version(k)
-        snap = self._snap if self._snap is not None else self.snapshot(sim_s)
-        s = self.state
+        if msgid == GPS_GLOBAL_ORIGIN:
+            return self.gps_global_origin(k, sim_s)
+        snap = self._snap
+        if snap is None or snap.time_boot_ms != int(round(sim_s * 1000)) & 0xFFFFFFFF:
+            snap = self.snapshot(sim_s)  # a requested message between streams: not the last stream's time
+        s, ap = self.state, self.aps[k]
         tb = snap.time_boot_ms
         if msgid == LOCAL_POSITION_NED:
-            p, v = s.pos_ned_m[k], s.vel_ned_mps[k]
+            if ap.origin_ned_m is None:
+                return None  # no local position before the EKF has an origin
+            p, v = s.pos_ned_m[k] - ap.origin_ned_m, s.vel_ned_mps[k]
             return mavlink.MAVLink_local_position_ned_message(tb, float(p[0]), float(p[1]), float(p[2]),
                                                               float(v[0]), float(v[1]), float(v[2]))
         if msgid == ATTITUDE:
@@ -182,22 +239,30 @@ class TelemetryBuilder:
             return mavlink.MAVLink_attitude_quaternion_message(tb, float(q[0]), float(q[1]), float(q[2]),
                                                                float(q[3]), float(w[0]), float(w[1]), float(w[2]))
         if msgid == GLOBAL_POSITION_INT:
+            if ap.origin_ned_m is None:
+                return None
+            lat, lon, alt = self._geodetic(snap, k)
             v = s.vel_ned_mps[k]
             hdg = int(round(math.degrees(snap.rpy[k, 2]) * 100)) % 36000
             rel_mm = int(round((self.home_ned_m[k, 2] - s.pos_ned_m[k, 2]) * 1000))
             return mavlink.MAVLink_global_position_int_message(
-                tb, int(snap.lat_e7[k]), int(snap.lon_e7[k]), int(snap.alt_mm[k]), rel_mm,
-                _i16(v[0] * 100), _i16(v[1] * 100), _i16(v[2] * 100), hdg)
+                tb, lat, lon, alt, rel_mm, _i16(v[0] * 100), _i16(v[1] * 100),
+                _i16(v[2] * 100), hdg)
         if msgid == GPS_RAW_INT:
             v = s.vel_ned_mps[k]
+            if ap.origin_ned_m is None:
+                return mavlink.MAVLink_gps_raw_int_message(int(sim_s * 1e6), 1, 0, 0, 0, 65535, 65535, 65535,
+                                                           65535, 0)
+            lat, lon, alt = self._geodetic(snap, k)
             cog = int(round(math.degrees(math.atan2(v[1], v[0])) * 100)) % 36000
             return mavlink.MAVLink_gps_raw_int_message(
-                int(sim_s * 1e6), 3, int(snap.lat_e7[k]), int(snap.lon_e7[k]), int(snap.alt_mm[k]),
-                80, 120, min(65534, int(math.hypot(v[0], v[1]) * 100)), cog, 12)
+                int(sim_s * 1e6), 3, lat, lon, alt, 80, 120,
+                min(65534, int(math.hypot(v[0], v[1]) * 100)), cog, 12)
         if msgid == SYS_STATUS:
-            ap = self.aps[k]
             health = (SENSORS | (PREARM_CHECK if ap.prearm_failure(sim_s) is None else 0)
                       | (0 if ap.fence_breached else GEOFENCE))
+            if ap.origin_ned_m is None:
+                health &= ~0x20  # GPS not healthy before the fix
             pct, mv = self._battery(k)
             present = SENSORS | PREARM_CHECK | GEOFENCE
             return mavlink.MAVLink_sys_status_message(present, present, health,
@@ -207,14 +272,14 @@ class TelemetryBuilder:
             cells = [mv // BATTERY_CELLS] * BATTERY_CELLS + [65535] * (10 - BATTERY_CELLS)
             return mavlink.MAVLink_battery_status_message(0, 1, 1, 32767, cells, -1, -1, -1, pct)
         if msgid == EXTENDED_SYS_STATE:
-            return mavlink.MAVLink_extended_sys_state_message(0, int(self.aps[k].landed_state))
+            return mavlink.MAVLink_extended_sys_state_message(0, int(ap.landed_state))
         if msgid == HOME_POSITION:
-            h = self.home_ned_m[k]
+            h = self.home_ned_m[k] - (ap.origin_ned_m if ap.origin_ned_m is not None else 0.0)
             return mavlink.MAVLink_home_position_message(
                 int(self.home_lat_e7[k]), int(self.home_lon_e7[k]), int(self.home_alt_mm[k]),
                 float(h[0]), float(h[1]), float(h[2]), [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, int(sim_s * 1e6))
         if msgid == SYSTEM_TIME:
-            return mavlink.MAVLink_system_time_message(int(time.time() * 1e6), tb)
+            return mavlink.MAVLink_system_time_message(int(round((self.epoch_unix_s + sim_s) * 1e6)), tb)
         return None
 
     def _battery(self, k: int) -> tuple[int, int]:

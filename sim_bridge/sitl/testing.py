@@ -2,35 +2,19 @@
 from __future__ import annotations
 
 import os
-import random
-import socket
 import time
 from typing import Callable
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
+from sim_bridge.fleet import find_free_udp_range  # noqa: E402
 from sim_bridge.sitl.config import EndpointConfig  # noqa: E402
 
 
-def free_udp_base_port(count: int, lo: int = 20000, hi: int = 60000, attempts: int = 50) -> int:
+def free_udp_base_port(count: int) -> int:
     """A base port b such that b .. b+count-1 are all free UDP ports on 127.0.0.1."""
-    rnd = random.Random(os.getpid() ^ time.monotonic_ns())
-    for _ in range(attempts):
-        base = rnd.randrange(lo, hi - count)
-        socks = []
-        try:
-            for p in range(base, base + count):
-                s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
-                socks.append(s)
-                s.bind(("127.0.0.1", p))
-            return base
-        except OSError:
-            continue
-        finally:
-            for s in socks:
-                s.close()
-    raise RuntimeError(f"no {count} consecutive free UDP ports found")
+    return find_free_udp_range(count, os.getpid() ^ time.monotonic_ns())
 
 
 def local_endpoints(n_remote: int) -> EndpointConfig:

@@ -1,6 +1,9 @@
-"""Decoding of offboard setpoint messages into inner-loop setpoints, as PX4 does.
+"""Offboard setpoint messages: type_mask encoding (companion) and decoding (SITL).
 
-Pure functions on plain numbers (no pymavlink, no sockets). Reference behaviour:
+Pure functions on plain numbers (no sockets). The agent encodes its setpoints
+with ``position_target_fields`` / ``attitude_target_fields`` and the SITL decodes
+what it receives with ``decode_position_target`` / ``decode_attitude_target``, so
+both ends read the bits one way. Decoding follows PX4 (reference behaviour:
 PX4 MavlinkReceiver::handle_message_set_position_target_local_ned and
 handle_message_set_attitude_target (v1.14-v1.16):
 
@@ -14,7 +17,12 @@ handle_message_set_attitude_target (v1.14-v1.16):
 * yaw / yaw_rate are NaN when their ignore bit is set.
 * SET_ATTITUDE_TARGET: the quaternion (NED->FRD, w x y z) unless ATTITUDE_IGNORE;
   otherwise body rates if at least one rate is not ignored. Thrust is 0 when
-  THROTTLE_IGNORE is set (PX4 leaves thrust_body zero).
+  THROTTLE_IGNORE is set (PX4 leaves thrust_body zero).)
+
+ArduPilot's GUIDED rules differ in places (docs/companion.md): it rejects
+position + acceleration without velocity, THROTTLE_IGNORE, and a partial set of
+rate-ignore bits, and a quaternion that is not unit; the decoders check those with
+``guided_rules=True`` and the encoders below never produce any of them.
 """
 from __future__ import annotations
 
@@ -87,8 +95,10 @@ def decode_position_target(
     yaw: float,
     yaw_rate: float,
     rot_body_to_ned: np.ndarray,
+    guided_rules: bool = False,
 ) -> TrajectorySetpoint | Rejected:
-    """SET_POSITION_TARGET_LOCAL_NED fields -> setpoint, or why PX4 would drop it."""
+    """SET_POSITION_TARGET_LOCAL_NED fields -> setpoint, or why PX4 (or, with
+    guided_rules, ArduPilot's GUIDED) would drop it."""
     nan = math.nan
     if frame == MAV_FRAME_LOCAL_NED:
         p = _axes(pos, type_mask, POS_IGNORE, nan)
@@ -115,6 +125,8 @@ def decode_position_target(
         return Rejected("SET_POSITION_TARGET_LOCAL_NED force not supported")
     if not (has_pos or has_vel or has_acc):
         return Rejected("SET_POSITION_TARGET_LOCAL_NED invalid")
+    if guided_rules and math.isfinite(p[0]) and math.isfinite(a[0]) and not math.isfinite(v[0]):
+        return Rejected("SET_POSITION_TARGET_LOCAL_NED position with acceleration needs velocity")
     return TrajectorySetpoint(
         pos_ned_m=p, vel_ned_mps=v, acc_ned_mps2=a,
         yaw_rad=nan if type_mask & YAW_IGNORE else float(yaw),
@@ -127,8 +139,18 @@ def decode_attitude_target(
     q_wxyz: tuple[float, float, float, float],
     body_rates_radps: tuple[float, float, float],
     thrust: float,
+    guided_rules: bool = False,
 ) -> AttitudeSetpoint | Rejected:
-    """SET_ATTITUDE_TARGET fields -> setpoint, or why it is dropped."""
+    """SET_ATTITUDE_TARGET fields -> setpoint, or why it is dropped (guided_rules: also
+    ArduPilot's GUIDED checks, handle_message_set_attitude_target)."""
+    if guided_rules:
+        if type_mask & ATT_THROTTLE_IGNORE:
+            return Rejected("SET_ATTITUDE_TARGET throttle ignored")
+        if type_mask & 7 not in (0, 7):
+            return Rejected("SET_ATTITUDE_TARGET partial rate mask")
+        if not type_mask & ATT_ATTITUDE_IGNORE and not abs(math.sqrt(sum(float(x) * float(x) for x in q_wxyz))
+                                                           - 1.0) <= 1e-3:
+            return Rejected("SET_ATTITUDE_TARGET quaternion not unit")
     if type_mask & ATT_THROTTLE_IGNORE or not math.isfinite(thrust):
         thrust_norm = 0.0
     else:
@@ -148,3 +170,68 @@ def decode_attitude_target(
     if (type_mask & 7) != 7:
         return AttitudeSetpoint(att_q_wxyz=None, thrust_norm=thrust_norm, body_rate_radps=rates)
     return Rejected("SET_ATTITUDE_TARGET ignores attitude and all rates")
+
+
+def position_target_fields(pos_ned_m, vel_ned_mps, acc_ned_mps2, yaw_rad: float, yaw_rate_radps: float
+                           ) -> tuple[int, tuple[float, ...]]:
+    """SET_POSITION_TARGET_LOCAL_NED (frame LOCAL_NED) for one setpoint row.
+
+    A NaN axis becomes its ignore bit (and 0 on the wire); yaw and yaw rate likewise.
+    Groups are kept whole (a group with any NaN axis is ignored entirely), because
+    ArduPilot checks masks per group.
+
+    Args:
+        pos_ned_m, vel_ned_mps, acc_ned_mps2: 3 values each (NaN = not commanded), local NED.
+        yaw_rad, yaw_rate_radps: NaN = not commanded.
+    Returns:
+        (type_mask, (x, y, z, vx, vy, vz, afx, afy, afz, yaw, yaw_rate)).
+    Raises:
+        ValueError: nothing commanded, or position and acceleration without velocity
+            (ArduPilot rejects that combination).
+    """
+    mask = 0
+    out: list[float] = []
+    used = []
+    for values, bits in ((pos_ned_m, POS_IGNORE), (vel_ned_mps, VEL_IGNORE), (acc_ned_mps2, ACC_IGNORE)):
+        x, y, z = (float(values[0]), float(values[1]), float(values[2]))
+        if math.isfinite(x + y + z):  # all three finite (NaN or inf poisons the sum)
+            out += (x, y, z)
+            used.append(True)
+        else:
+            mask |= bits[0] | bits[1] | bits[2]
+            out += (0.0, 0.0, 0.0)
+            used.append(False)
+    if not (used[0] or used[1] or used[2]):
+        raise ValueError("setpoint commands no position, velocity or acceleration")
+    if used[0] and used[2] and not used[1]:
+        raise ValueError("position with acceleration needs velocity (ArduPilot rejects it)")
+    for value, bit in ((yaw_rad, YAW_IGNORE), (yaw_rate_radps, YAW_RATE_IGNORE)):
+        if math.isfinite(value):
+            out.append(float(value))
+        else:
+            mask |= bit
+            out.append(0.0)
+    return mask, tuple(out)
+
+
+def attitude_target_fields(q_wxyz, thrust: float, body_rate_radps=None) -> tuple[int, tuple]:
+    """SET_ATTITUDE_TARGET for an attitude (w, x, y, z, NED->FRD) and a thrust field.
+
+    Body rates are feed-forward (all three or none: ArduPilot rejects a partial set).
+    Returns (type_mask, (q (4-list), roll_rate, pitch_rate, yaw_rate, thrust)).
+
+    Raises:
+        ValueError: non-finite or zero quaternion, or non-finite thrust.
+    """
+    q = [float(v) for v in q_wxyz]
+    norm = math.sqrt(sum(v * v for v in q))
+    if not (math.isfinite(norm) and norm > 0.5) or not math.isfinite(thrust):
+        raise ValueError("attitude setpoint needs a finite unit quaternion and thrust")
+    q = [v / norm for v in q]
+    rates = [float(v) for v in body_rate_radps] if body_rate_radps is not None else [math.nan] * 3
+    if all(math.isfinite(r) for r in rates):
+        mask = 0
+    else:
+        mask = ATT_ROLL_RATE_IGNORE | ATT_PITCH_RATE_IGNORE | ATT_YAW_RATE_IGNORE
+        rates = [0.0, 0.0, 0.0]
+    return mask, (q, rates[0], rates[1], rates[2], float(thrust))

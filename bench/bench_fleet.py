@@ -1,0 +1,146 @@
+"""Fleet bench: the MAVLink fleet (`swarmdrop run`) in real time, and one agent's start-up.
+
+* `paper_40`: the whole paper scenario, SITL + 40 agent processes, real time: real-time
+  factor, setpoint deadline misses, agent latency (telemetry received to setpoint sent),
+  CPU per agent and of the SITL (measured after 10 s of simulated time), PSS, swarm-link
+  bytes per vehicle, plus the paper metrics.
+* `capacity`: 30 s of the paper scenario at several fleet sizes: the largest that still
+  holds a real-time factor of 0.99.
+* `agent_startup`: one agent process against a one-vehicle SITL on a quiet machine: time
+  from process start to a constructed node (imports, mission, sockets), setup time, PSS.
+"""
+from __future__ import annotations
+
+import copy
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+PAPER = ROOT / "configs" / "paper_40.yaml"
+
+
+def _fleet_figures(metrics: dict) -> dict:
+    fl = metrics["fleet"]
+    return {
+        "real_time_factor": metrics["performance"]["real_time_factor"],
+        "sim_s": metrics["performance"]["sim_s"],
+        "setpoint_deadline_misses": fl["setpoint_deadline_misses"],
+        "agent_latency_ms": fl["agent_latency_ms"],
+        "agent_cpu_fraction_of_core": fl["agent_cpu_fraction_of_core"],
+        "sitl_cpu_fraction_of_core": fl["sitl_cpu_fraction_of_core"],
+        "agent_pss_mb": fl["agent_pss_mb"],
+        "agent_startup_s_in_fleet": fl["agent_startup_s"],
+        "swarm_link_bytes_per_s_per_vehicle": fl["swarm_link_bytes_per_s_per_vehicle"],
+        "dead_agents": fl["dead_agents"],
+        "checks": metrics["checks"],
+        "final_max_deviation_m": metrics["formation_deviation"]["final_max_m"],
+        "min_separation_m": metrics["separation"]["min_pair_distance_m"],
+        "min_obstacle_clearance_m": metrics["obstacles"]["min_clearance_m"],
+        "mission_completion_s": metrics["mission"]["completion_time_s"],
+    }
+
+
+def fleet(config: Path, out: Path, **options) -> dict:
+    from sim_bridge.fleet import FleetOptions, run_fleet
+
+    metrics, _ = run_fleet(config, FleetOptions(out_dir=out, progress=False, figures=False, **options))
+    return _fleet_figures(metrics)
+
+
+def paper_40(tmp: Path) -> dict:
+    t0 = time.perf_counter()
+    figures = fleet(PAPER, tmp / "paper_40")
+    return {"config": "configs/paper_40.yaml", "wall_s": time.perf_counter() - t0, **figures}
+
+
+def capacity(tmp: Path, sizes=(40, 60, 80, 100), sim_s: float = 30.0) -> dict:
+    base = yaml.safe_load(PAPER.read_text())
+    rows = []
+    for n in sizes:
+        cfg = copy.deepcopy(base)
+        cfg["mission"]["n_vehicles"] = n
+        cfg["duration_s"] = sim_s
+        cfg["name"] = f"capacity_{n}"
+        path = tmp / f"capacity_{n}.yaml"
+        path.write_text(yaml.safe_dump(cfg))
+        try:
+            f = fleet(path, tmp / f"capacity_{n}")
+        except Exception as err:  # e.g. the machine refused so many processes
+            rows.append({"vehicles": n, "error": str(err)})
+            continue
+        rows.append({"vehicles": n, "real_time_factor": f["real_time_factor"],
+                     "deadline_miss_fraction": f["setpoint_deadline_misses"]["fraction"],
+                     "agent_cpu_mean": f["agent_cpu_fraction_of_core"]["mean"],
+                     "sitl_cpu": f["sitl_cpu_fraction_of_core"]})
+    ok = [r["vehicles"] for r in rows if (r.get("real_time_factor") or 0) >= 0.99]
+    return {"simulated_s_each": sim_s, "runs": rows, "largest_with_rtf_0p99": max(ok) if ok else None}
+
+
+def agent_startup(tmp: Path) -> dict:
+    """One SITL vehicle and one agent, nothing else running."""
+    from sim_bridge.sitl.testing import free_udp_base_port
+
+    base = free_udp_base_port(3)
+    mission = yaml.safe_load(PAPER.read_text())
+    mission["mission"]["n_vehicles"] = 1
+    cfg = tmp / "one.yaml"
+    cfg.write_text(yaml.safe_dump(mission))
+    sitl_log = tmp / "sitl.log"
+    with open(sitl_log, "w") as log:
+        sitl = subprocess.Popen([sys.executable, "-m", "sim_bridge.sitl", "--scenario", str(cfg),
+                                 "--remote-base-port", str(base), "--local-base-port", str(base + 1),
+                                 "--medium-port", str(base + 2)], stdout=log, stderr=subprocess.STDOUT)
+    stats = tmp / "agent.json"
+    agent = None
+    try:
+        # The SITL's own start-up (imports, physics compile) must not overlap the agent's.
+        deadline = time.monotonic() + 60
+        while "SITL READY" not in sitl_log.read_text():
+            if sitl.poll() is not None or time.monotonic() > deadline:
+                raise RuntimeError("the SITL did not start:\n" + sitl_log.read_text()[-2000:])
+            time.sleep(0.05)  # polling a condition with a deadline
+        agent = subprocess.Popen([sys.executable, "-m", "swarmdrop.cli", "agent", "--vehicle-id", "0",
+                                  "--autopilot", f"udpin://127.0.0.1:{base}", "--mission", str(cfg),
+                                  "--swarm-peer", f"127.0.0.1:{base + 2}", "--stats", str(stats),
+                                  "--no-stderr-log"])
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline and not (stats.exists() and "setup_s" in stats.read_text()):
+            time.sleep(0.2)
+        time.sleep(6.0)  # a measurement window, not synchronisation: PSS once the agent has flown a while
+        from sim_bridge.fleet import pss_mb
+
+        pss = pss_mb(agent.pid)
+        s = json.loads(stats.read_text())
+        return {"startup_s": s.get("startup_s"), "setup_s": s.get("setup_s"), "pss_mb": pss,
+                "note": "startup = process start to a constructed node (imports, mission file, sockets); "
+                        "setup = then to flying (streams, clock, EKF origin, parameters)"}
+    finally:
+        for p in (agent, sitl):
+            if p is not None and p.poll() is None:
+                p.terminate()
+                try:
+                    p.wait(10)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+
+
+def run(capacity_sizes=(40, 60, 80, 100)) -> dict:
+    with tempfile.TemporaryDirectory(prefix="swarmdrop-bench-") as d:
+        tmp = Path(d)
+        return {
+            "name": "fleet",
+            "description": "swarmdrop run: the MAVLink SITL plus one swarmdrop agent process per vehicle, real time",
+            "agent_startup": agent_startup(tmp),
+            "paper_40": paper_40(tmp),
+            "capacity": capacity(tmp, capacity_sizes),
+        }
+
+
+if __name__ == "__main__":
+    print(json.dumps(run(), indent=2))

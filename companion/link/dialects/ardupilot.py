@@ -1,0 +1,72 @@
+"""ArduCopter: GUIDED mode, ArduCopter mode numbers, integer parameters carried by value."""
+from __future__ import annotations
+
+import math
+
+from companion.link.dialects.base import (
+    MODE_FLAG_CUSTOM, MODE_FLAG_GUIDED, MODE_FLAG_MANUAL_INPUT, MODE_FLAG_STABILIZE, AutopilotDialect,
+    HeartbeatState, Mode, clamp01,
+)
+
+STABILIZE, GUIDED, LOITER, RTL, LAND, BRAKE, THROW = 0, 4, 5, 6, 9, 17, 18
+GUID_OPTIONS_THRUST = 8
+"""GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET.thrust is thrust, not a climb rate."""
+ANGLE_BOOST_COS_MIN = 0.1
+"""ArduPilot's angle boost divides by max(cos(lean), 0.1)."""
+
+
+class ArduPilot(AutopilotDialect):
+    name = "ardupilot"
+    autopilot_id = 3  # MAV_AUTOPILOT_ARDUPILOTMEGA
+    param_encoding = "c_cast"
+    hover_thrust_param = "MOT_THST_HOVER"
+    setpoint_timeout_param = "GUID_TIMEOUT"
+    # ArduCopter takes off in GUIDED: TAKEOFF has no mode number of its own.
+    modes = {Mode.MANUAL: STABILIZE, Mode.OFFBOARD: GUIDED, Mode.POSITION: LOITER, Mode.HOLD: BRAKE,
+             Mode.RETURN: RTL, Mode.LAND: LAND, Mode.THROW: THROW}
+    takeoff_from_mode = Mode.OFFBOARD
+    carrier_mode = Mode.THROW
+    _names = {STABILIZE: "STABILIZE", GUIDED: "GUIDED", LOITER: "LOITER", RTL: "RTL", LAND: "LAND", BRAKE: "BRAKE",
+              THROW: "THROW"}
+
+    def custom_mode(self, mode: Mode) -> int:
+        return GUIDED if mode == Mode.TAKEOFF else self.modes[mode]
+
+    def mode_name(self, custom_mode: int) -> str:
+        return self._names.get(custom_mode, f"ArduCopter mode {custom_mode}")
+
+    def set_mode_params(self, mode: Mode) -> tuple[float, float, float]:
+        return float(MODE_FLAG_CUSTOM), float(self.custom_mode(mode)), 0.0
+
+    def mode_from_set_mode(self, param1: float, param2: float, param3: float) -> Mode | None:
+        if not (math.isfinite(param1) and math.isfinite(param2)) or not int(param1) & MODE_FLAG_CUSTOM:
+            return None
+        return self.mode_of(int(param2))
+
+    def base_mode(self, mode: Mode, armed: bool) -> int:
+        flags = MODE_FLAG_CUSTOM | MODE_FLAG_STABILIZE | MODE_FLAG_MANUAL_INPUT
+        if mode in (Mode.OFFBOARD, Mode.TAKEOFF, Mode.POSITION, Mode.HOLD, Mode.RETURN, Mode.LAND, Mode.THROW):
+            flags |= MODE_FLAG_GUIDED  # ArduPilot sets it while its position controller runs
+        return flags | (128 if armed else 0)
+
+    def launch_ready(self, hb: HeartbeatState) -> bool:
+        # THROW switches to THROW_NEXTMODE once recovered (carrier_params sets GUIDED);
+        # after a GUIDED take-off the vehicle stays in GUIDED (the agent checks the height).
+        return hb.armed and hb.in_air and hb.custom_mode in (GUIDED, LOITER, BRAKE)
+
+    def takeoff_params(self, altitude_rel_m: float, home_alt_amsl_m: float) -> tuple[float, ...]:
+        return (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, altitude_rel_m)  # param7: altitude above home
+
+    def carrier_params(self) -> dict[str, float]:
+        return {"THROW_NEXTMODE": GUIDED}
+
+    def attitude_params(self) -> dict[str, float]:
+        return {"GUID_OPTIONS": GUID_OPTIONS_THRUST}  # merged into the current bits by the caller
+
+    def thrust_field(self, thrust_over_weight: float, hover_thrust: float, cos_tilt: float) -> float:
+        # ArduPilot applies angle boost (divides by cos of the lean angle), so the field
+        # is the vertical-equivalent throttle: collective times cos(tilt).
+        return clamp01(thrust_over_weight * hover_thrust * max(cos_tilt, ANGLE_BOOST_COS_MIN))
+
+    def collective_from_thrust_field(self, thrust: float, cos_tilt: float) -> float:
+        return clamp01(clamp01(thrust) / max(cos_tilt, ANGLE_BOOST_COS_MIN))

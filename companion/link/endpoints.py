@@ -1,0 +1,405 @@
+"""MAVLink endpoints: UDP, TCP and serial byte pipes, and the message layer on top.
+
+`open_link(url)` gives a non-blocking `Link` (a socket or a serial port) with a
+file descriptor that an asyncio loop watches (`loop.add_reader`); `recv()` drains
+what is waiting in one call, so a flood costs one wake-up, not one per datagram.
+`MavEndpoint` puts a codec and a bounded outbox on a Link: received frames come
+out as messages (bad frames are counted and dropped, never raised), messages to
+send are data in the outbox until `flush()` packs and sends them. The agent and
+the SITL use the same classes.
+
+URLs (the MAVSDK forms, plus serial):
+    udpin://HOST:PORT      listen; answer whoever talked last (udp:// is the same)
+    udpout://HOST:PORT     send there from an ephemeral port
+    tcp://HOST:PORT        connect as a client
+    serial:///dev/ttyAMA0:921600   a UART (8N1, raw)
+"""
+from __future__ import annotations
+
+import collections
+import errno
+import os
+import socket
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
+
+from companion.link.tlog import Tlog
+from companion.link.wire import Codec, EncodeError, FrameError, FrameSplitter, UnknownMessage, split_datagram
+
+MAX_DATAGRAMS_PER_RECV = 512
+"""A recv() call returns after this many datagrams even if more are waiting, so a
+flood on one link cannot starve the rest of the loop."""
+UDP_RCVBUF_BYTES = 1 << 20
+DATAGRAM_BYTES = 1400
+"""Frames for one destination are packed into datagrams up to this size (under a typical MTU)."""
+
+_BAUDS = {9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600, 1000000, 1500000, 2000000}
+
+
+class EndpointError(ValueError):
+    """A link URL that cannot be used; the message says why."""
+
+
+@dataclass(frozen=True)
+class LinkAddress:
+    """A parsed link URL."""
+
+    scheme: str  # "udpin", "udpout", "tcp" or "serial"
+    host: str = ""
+    port: int = 0
+    device: str = ""
+    baud: int = 0
+
+    def __str__(self) -> str:
+        if self.scheme == "serial":
+            return f"serial://{self.device}:{self.baud}"
+        return f"{self.scheme}://{self.host}:{self.port}"
+
+
+def parse_url(url: str) -> LinkAddress:
+    """Parse a link URL (module docstring).
+
+    Raises:
+        EndpointError: unknown scheme, missing host or port, port or baud out of range.
+    """
+    scheme, sep, rest = url.partition("://")
+    if not sep:
+        raise EndpointError(f"{url!r}: expected scheme://..., e.g. udpin://0.0.0.0:14540")
+    scheme = {"udp": "udpin"}.get(scheme, scheme)
+    if scheme == "serial":
+        device, _, baud = rest.rpartition(":")
+        if not device or not baud.isdigit() or int(baud) not in _BAUDS:
+            raise EndpointError(f"{url!r}: expected serial:///dev/NAME:BAUD with BAUD one of {sorted(_BAUDS)}")
+        return LinkAddress("serial", device=device, baud=int(baud))
+    if scheme not in ("udpin", "udpout", "tcp"):
+        raise EndpointError(f"{url!r}: unknown scheme {scheme!r} (udpin, udpout, tcp, serial)")
+    host, _, port = rest.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise EndpointError(f"{url!r}: expected {scheme}://HOST:PORT with PORT in 1..65535")
+    return LinkAddress(scheme, host=host, port=int(port))
+
+
+class Link:
+    """A non-blocking MAVLink byte pipe. Subclasses: UdpLink, StreamLink.
+
+    Attributes (counters):
+        bytes_in, bytes_out, frames_in: traffic.
+        bytes_skipped: bytes that were not part of a whole frame (garbage, truncation).
+        send_errors: sends the OS refused (buffer full, peer gone); the frame is dropped.
+        no_peer_drops: frames dropped because nobody has talked to a listening link yet.
+    """
+
+    def __init__(self) -> None:
+        self.bytes_in = self.bytes_out = self.frames_in = 0
+        self.bytes_skipped = self.send_errors = self.no_peer_drops = 0
+
+    def fileno(self) -> int:
+        raise NotImplementedError
+
+    def recv(self) -> list[tuple[bytes, Any]]:
+        """Whole frames waiting now, with the address they came from; never blocks."""
+        raise NotImplementedError
+
+    def send(self, frame: bytes, addr: Any = None) -> bool:
+        """Send one frame (to addr, or the link's peer); False if it was dropped."""
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+
+class UdpLink(Link):
+    """One UDP socket.
+
+    Args:
+        bind: local (host, port) to listen on; port 0 = ephemeral.
+        remote: where to send until someone talks to us (None: nowhere yet).
+        learn_remote: answer whoever sent the last datagram (udpin; PX4 does the same).
+    Raises:
+        OSError: the port cannot be bound.
+    """
+
+    def __init__(self, bind: tuple[str, int] = ("127.0.0.1", 0), remote: tuple[str, int] | None = None,
+                 learn_remote: bool = True):
+        super().__init__()
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RCVBUF_BYTES)
+        except OSError:  # a smaller buffer still works
+            pass
+        self.sock.bind(bind)
+        self.sock.setblocking(False)
+        self.remote = remote
+        self.learn_remote = learn_remote
+
+    @property
+    def local_port(self) -> int:
+        return self.sock.getsockname()[1]
+
+    def fileno(self) -> int:
+        return self.sock.fileno()
+
+    def recv(self) -> list[tuple[bytes, Any]]:
+        out: list[tuple[bytes, Any]] = []
+        sock = self.sock
+        for _ in range(MAX_DATAGRAMS_PER_RECV):
+            try:
+                data, addr = sock.recvfrom(65535)
+            except (BlockingIOError, InterruptedError):
+                break
+            except OSError:  # e.g. ICMP port unreachable reported on a later call
+                continue
+            self.bytes_in += len(data)
+            if self.learn_remote:
+                self.remote = addr
+            frames, skipped = split_datagram(data)
+            self.bytes_skipped += skipped
+            self.frames_in += len(frames)
+            out += [(f, addr) for f in frames]
+        return out
+
+    def send(self, frame: bytes, addr: Any = None) -> bool:
+        dest = addr or self.remote
+        if dest is None:
+            self.no_peer_drops += 1
+            return False
+        try:
+            self.sock.sendto(frame, dest)
+        except OSError:
+            self.send_errors += 1
+            return False
+        self.bytes_out += len(frame)
+        return True
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+class StreamLink(Link):
+    """A byte stream (TCP socket or serial port) cut into frames by a FrameSplitter.
+
+    Args:
+        fd_owner: the socket object, or an int file descriptor (serial).
+        crc_extra: msgid -> CRC_EXTRA for resynchronising on corrupt bytes (Codec.crc_extra).
+    """
+
+    def __init__(self, fd_owner: socket.socket | int, crc_extra: Callable[[int], int | None] | None = None):
+        super().__init__()
+        self._sock = fd_owner if isinstance(fd_owner, socket.socket) else None
+        self._fd = fd_owner.fileno() if self._sock is not None else int(fd_owner)
+        self._splitter = FrameSplitter(crc_extra)
+
+    def fileno(self) -> int:
+        return self._fd
+
+    def recv(self) -> list[tuple[bytes, Any]]:
+        out: list[tuple[bytes, Any]] = []
+        for _ in range(64):
+            try:
+                data = os.read(self._fd, 65536)
+            except (BlockingIOError, InterruptedError):
+                break
+            if not data:  # peer closed
+                break
+            self.bytes_in += len(data)
+            before = self._splitter.bytes_skipped
+            frames = self._splitter.feed(data)
+            self.bytes_skipped += self._splitter.bytes_skipped - before
+            self.frames_in += len(frames)
+            out += [(f, None) for f in frames]
+        return out
+
+    def send(self, frame: bytes, addr: Any = None) -> bool:
+        try:
+            n = os.write(self._fd, frame)
+        except OSError:
+            self.send_errors += 1
+            return False
+        if n != len(frame):  # a partial write would desynchronise the peer's parser
+            self.send_errors += 1
+            return False
+        self.bytes_out += n
+        return True
+
+    def close(self) -> None:
+        if self._sock is not None:
+            self._sock.close()
+        else:
+            os.close(self._fd)
+
+
+def _open_serial(device: str, baud: int) -> int:
+    import termios  # POSIX only; imported here so that importing this module works anywhere
+
+    fd = os.open(device, os.O_RDWR | os.O_NOCTTY | os.O_NONBLOCK)
+    attrs = termios.tcgetattr(fd)
+    speed = getattr(termios, f"B{baud}")
+    attrs[0] = 0  # iflag: raw
+    attrs[1] = 0  # oflag
+    attrs[2] = termios.CS8 | termios.CREAD | termios.CLOCAL  # cflag: 8N1
+    attrs[3] = 0  # lflag: no echo, no canonical mode
+    attrs[4] = attrs[5] = speed
+    termios.tcsetattr(fd, termios.TCSANOW, attrs)
+    return fd
+
+
+def open_link(url: str | LinkAddress, crc_extra: Callable[[int], int | None] | None = None) -> Link:
+    """Open a link from its URL (module docstring).
+
+    Raises:
+        EndpointError: bad URL. OSError: cannot bind, connect or open the device.
+    """
+    a = parse_url(url) if isinstance(url, str) else url
+    if a.scheme == "udpin":
+        return UdpLink(bind=(a.host, a.port), remote=None, learn_remote=True)
+    if a.scheme == "udpout":
+        return UdpLink(bind=("0.0.0.0" if a.host not in ("127.0.0.1", "localhost") else "127.0.0.1", 0),
+                       remote=(a.host, a.port), learn_remote=False)
+    if a.scheme == "tcp":
+        sock = socket.create_connection((a.host, a.port), timeout=5.0)
+        sock.setblocking(False)
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        return StreamLink(sock, crc_extra)
+    try:
+        return StreamLink(_open_serial(a.device, a.baud), crc_extra)
+    except OSError as exc:
+        raise OSError(errno.ENODEV, f"{a.device}: {exc.strerror or exc}") from None
+
+
+class MavEndpoint:
+    """Messages over one Link: decode what arrives, queue and flush what leaves.
+
+    The outbox is bounded: when it is full the oldest message is dropped and
+    counted, so a burst of replies can never grow memory without limit.
+
+    Args:
+        link: the byte pipe.
+        codec: frame <-> message (companion.link.wire.Codec).
+        sysid, compid: our ids for messages sent without explicit ids.
+        tlog: log every frame sent and received (optional).
+        outbox_max: messages held before the oldest is dropped.
+    """
+
+    def __init__(self, link: Link, codec: Codec, sysid: int, compid: int, tlog: Tlog | None = None,
+                 outbox_max: int = 4096):
+        self.link = link
+        self.codec = codec
+        self.sysid = sysid
+        self.compid = compid
+        self.tlog = tlog
+        self._outbox: collections.deque = collections.deque(maxlen=outbox_max)
+        self._seq: dict[tuple[int, int], int] = {}
+        self.received = self.sent = 0
+        self.bad_frames = 0
+        """Frames that failed to decode (CRC, truncated, bad flags): counted and dropped."""
+        self.unknown = 0
+        """Well-formed frames of messages this codec's dialect does not define: dropped."""
+        self.unencodable = 0
+        """Queued messages that could not be encoded (out-of-range values): dropped."""
+        self.outbox_drops = 0
+
+    def _drain(self, take: Callable[[bytes, Any], None]) -> None:
+        """Pass every waiting frame and its source address to take, which decodes it and
+        keeps the result; a frame take rejects is counted (unknown / bad) and dropped, a
+        kept one goes to the tlog. Never raises on bad input."""
+        n, tlog = 0, self.tlog
+        for frame, addr in self.link.recv():
+            try:
+                take(frame, addr)
+            except UnknownMessage:
+                self.unknown += 1
+                continue
+            except FrameError:
+                self.bad_frames += 1
+                continue
+            if tlog is not None:
+                tlog.write(frame)
+            n += 1
+        self.received += n
+
+    def poll(self) -> list[tuple[Any, Any]]:
+        """(message, source address) for everything waiting; never raises on bad input."""
+        out, decode = [], self.codec.decode
+        self._drain(lambda frame, addr: out.append((decode(frame), addr)))
+        return out
+
+    def poll_split(self, raw_ids: frozenset) -> tuple[list, list]:
+        """Like poll, but messages whose id is in raw_ids come as (msgid, sysid, compid,
+        wire-order values) tuples (no message object); returns (raw list, message list)."""
+        raw, msgs = [], []
+        decode, decode_raw = self.codec.decode, self.codec.decode_raw
+
+        def take(frame: bytes, _addr: Any) -> None:
+            msgid = frame[7] | frame[8] << 8 | frame[9] << 16 if frame[0] == 0xFD and len(frame) > 9 else -1
+            if msgid in raw_ids:
+                raw.append(decode_raw(frame))
+            else:
+                msgs.append(decode(frame))
+
+        self._drain(take)
+        return raw, msgs
+
+    def poll_raw(self) -> list[tuple[int, int, int, tuple, Any]]:
+        """(msgid, sysid, compid, wire-order values, source address) for everything waiting:
+        poll without message objects (Codec.decode_raw), for high-rate messages."""
+        out, decode_raw = [], self.codec.decode_raw
+        self._drain(lambda frame, addr: out.append((*decode_raw(frame), addr)))
+        return out
+
+    def queue(self, msg: Any, addr: Any = None, sysid: int | None = None, compid: int | None = None) -> None:
+        """Queue a message object (sent by the next flush)."""
+        if len(self._outbox) == self._outbox.maxlen:
+            self.outbox_drops += 1
+        self._outbox.append((msg, None, addr, sysid, compid))
+
+    def queue_fields(self, msgid: int, values: Sequence, addr: Any = None, sysid: int | None = None,
+                     compid: int | None = None) -> None:
+        """Queue a message given as its id and field values in declaration order (fast path)."""
+        if len(self._outbox) == self._outbox.maxlen:
+            self.outbox_drops += 1
+        self._outbox.append((msgid, values, addr, sysid, compid))
+
+    @property
+    def pending(self) -> int:
+        return len(self._outbox)
+
+    def flush(self, budget: int | None = None) -> int:
+        """Pack and send queued messages, at most budget of them; returns how many were sent.
+
+        Consecutive frames for one destination share a datagram (up to DATAGRAM_BYTES),
+        as PX4 batches its UDP output: a receiver then wakes once for a tick's telemetry.
+        Stream links get the same bytes in one write.
+        """
+        out, link, codec, tlog, seqs = self._outbox, self.link, self.codec, self.tlog, self._seq
+        n = len(out) if budget is None else min(budget, len(out))
+        sent = 0
+        buf, buf_addr, buf_frames = b"", None, 0
+        for _ in range(n):
+            msg, values, addr, sysid, compid = out.popleft()
+            key = (self.sysid if sysid is None else sysid, self.compid if compid is None else compid)
+            seq = seqs.get(key, 0)
+            try:
+                if values is None:
+                    frame = codec.encode(msg, key[0], key[1], seq)
+                else:
+                    frame = codec.encode_fields(msg, values, key[0], key[1], seq)
+            except EncodeError:
+                self.unencodable += 1
+                continue
+            seqs[key] = (seq + 1) & 0xFF
+            if tlog is not None:
+                tlog.write(frame)
+            if buf and (addr != buf_addr or len(buf) + len(frame) > DATAGRAM_BYTES):
+                if link.send(buf, buf_addr):
+                    sent += buf_frames
+                buf, buf_frames = b"", 0
+            buf += frame
+            buf_addr = addr
+            buf_frames += 1
+        if buf and link.send(buf, buf_addr):
+            sent += buf_frames
+        self.sent += sent
+        return sent
+
+    def close(self) -> None:
+        self.link.close()

@@ -1,0 +1,289 @@
+"""The agent's link to its own autopilot: telemetry in, commands and setpoints out.
+
+`VehicleLink` keeps the newest of each message the agent uses, picks the autopilot
+dialect from the first HEARTBEAT, converts the autopilot's clock to Unix time
+(SYSTEM_TIME) and its local frame to the mission frame (GPS_GLOBAL_ORIGIN), and
+offers commands and parameter access with timeout and retries (as MAVSDK does:
+0.5 s, four sends). Only messages from the target system's autopilot component
+(compid 1) count; anything malformed or non-finite is counted and dropped.
+"""
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+from companion.frames import geodetic_to_ned
+from companion.link.dialects import AutopilotDialect, HeartbeatState, UnknownAutopilot, dialect_for_autopilot
+from companion.link.endpoints import MavEndpoint
+from companion.link.msgdef import swarmdrop as md
+from companion.link.params import MAV_PARAM_TYPE_REAL32, decode_param_value, encode_param_value, param_name
+from companion.mission import GeodeticOrigin
+
+log = logging.getLogger("swarmdrop.vehicle")
+
+MAV_TYPE_ONBOARD_CONTROLLER = 18
+MAV_AUTOPILOT_INVALID = 8
+MAV_COMP_ID_ONBOARD_COMPUTER = 191
+ACCEPTED, IN_PROGRESS = 0, 5
+RESULT_NAMES = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED", 4: "FAILED",
+                5: "IN_PROGRESS", 6: "CANCELLED"}
+
+
+class CommandError(RuntimeError):
+    """A command was refused, or never acknowledged within its retries."""
+
+
+@dataclass
+class Sample:
+    """One timed measurement from the autopilot."""
+
+    time_boot_ms: int
+    values: tuple
+
+
+class VehicleLink:
+    """Telemetry cache and command channel of one autopilot.
+
+    Args:
+        endpoint: the MAVLink endpoint to the autopilot.
+        target_sysid: the autopilot's system id (None: the first autopilot heard).
+        origin: the mission frame's geodetic origin.
+    """
+
+    def __init__(self, endpoint: MavEndpoint, target_sysid: int | None, origin: GeodeticOrigin):
+        self.ep = endpoint
+        self.target_sysid = target_sysid
+        self.mission_origin = origin
+        self.dialect: AutopilotDialect | None = None
+        self.hb: HeartbeatState | None = None
+        self.hb_loop_time = -math.inf
+        self.landed_state = 0
+        self.lpn: Sample | None = None
+        self.att: Sample | None = None
+        self.origin_e7: tuple[int, int, int] | None = None
+        self.offset_ned_m: np.ndarray | None = None
+        """The autopilot's local frame origin in the mission frame (local + offset = mission)."""
+        self.offset: tuple[float, float, float] = (0.0, 0.0, 0.0)
+        """offset_ned_m as floats (the per-tick path adds it without numpy)."""
+        self.launch_ready = False
+        """The dialect's launch_ready of the latest HEARTBEAT / EXTENDED_SYS_STATE (cached)."""
+        self.unix_offset_us: int | None = None
+        """time_unix_usec - time_boot_ms * 1000 from SYSTEM_TIME."""
+        self._param_types: dict[str, int] = {}
+        self.dropped_nonfinite = 0
+        self.foreign = 0
+        self._acks: dict[int, asyncio.Future] = {}
+        self._param_waiters: dict[str, list[asyncio.Future]] = {}
+        self._msg_waiters: dict[int, list[asyncio.Future]] = {}
+        self.new_control = False
+        """Set when a LOCAL_POSITION_NED newer than the last one arrived."""
+
+    # ---------------------------------------------------------------- inbound
+    RAW_IDS = frozenset({31, 32})
+    """ATTITUDE_QUATERNION and LOCAL_POSITION_NED come at the setpoint rate: read raw."""
+
+    def handle_raw(self, msgid: int, sysid: int, compid: int, w: tuple) -> None:
+        """A LOCAL_POSITION_NED or ATTITUDE_QUATERNION as wire-order values (Codec.decode_raw)."""
+        if compid != 1 or sysid != self.target_sysid:
+            self.foreign += 1
+            return
+        if msgid == 32:  # time_boot_ms, x, y, z, vx, vy, vz
+            if not math.isfinite(w[1] + w[2] + w[3] + w[4] + w[5] + w[6]):
+                self.dropped_nonfinite += 1
+                return
+            if self.lpn is None or w[0] != self.lpn.time_boot_ms:
+                self.new_control = True
+            self.lpn = Sample(w[0], w[1:7])
+        else:  # time_boot_ms, q1..q4, rollspeed, pitchspeed, yawspeed (, repr_offset_q)
+            q = w[1:5]
+            if not math.isfinite(q[0] + q[1] + q[2] + q[3]) or q[0] * q[0] + q[1] * q[1] + q[2] * q[2] \
+                    + q[3] * q[3] < 0.25:
+                self.dropped_nonfinite += 1
+                return
+            self.att = Sample(w[0], q)
+
+    def handle(self, msg) -> None:
+        """One received message (anything; wrong sender or bad values are dropped)."""
+        src = msg.get_srcSystem()
+        t = msg.get_type()
+        if self.target_sysid is None and t == "HEARTBEAT" and msg.get_srcComponent() == 1 \
+                and msg.autopilot != MAV_AUTOPILOT_INVALID:
+            self.target_sysid = src  # the first autopilot heard
+        if msg.get_srcComponent() != 1 or src != self.target_sysid:
+            self.foreign += 1
+            return
+        msgid = msg.get_msgId()
+        if msgid in self.RAW_IDS:  # one code path for these, whichever way they were decoded
+            self.handle_raw(msgid, src, 1, tuple(getattr(msg, f) for f in msg.ordered_fieldnames))
+        else:
+            fn = getattr(self, "_on_" + t.lower(), None)
+            if fn is not None:
+                fn(msg)
+        for fut in self._msg_waiters.pop(msgid, []):
+            if not fut.done():
+                fut.set_result(msg)
+
+    def _on_heartbeat(self, msg) -> None:
+        if msg.autopilot == MAV_AUTOPILOT_INVALID:
+            return
+        if self.dialect is None:
+            try:
+                self.dialect = dialect_for_autopilot(msg.autopilot)
+            except UnknownAutopilot as err:
+                log.error("%s", err)
+                return
+            log.info("autopilot sysid %d speaks %s", msg.get_srcSystem(), self.dialect.name)
+        self.hb = HeartbeatState(msg.custom_mode, msg.base_mode, msg.system_status, self.landed_state)
+        self.launch_ready = self.dialect.launch_ready(self.hb)
+        self.hb_loop_time = asyncio.get_running_loop().time()
+
+    def _on_extended_sys_state(self, msg) -> None:
+        self.landed_state = msg.landed_state
+        if self.hb is not None:
+            self.hb = HeartbeatState(self.hb.custom_mode, self.hb.base_mode, self.hb.system_status, msg.landed_state)
+            self.launch_ready = self.dialect.launch_ready(self.hb)
+
+    def _on_gps_global_origin(self, msg) -> None:
+        o = (msg.latitude, msg.longitude, msg.altitude)
+        if o == self.origin_e7:
+            return
+        if not (-900_000_000 <= o[0] <= 900_000_000 and -1_800_000_000 <= o[1] <= 1_800_000_000):
+            self.dropped_nonfinite += 1
+            return
+        m = self.mission_origin
+        self.offset_ned_m = geodetic_to_ned(o[0] * 1e-7, o[1] * 1e-7, o[2] * 1e-3, m.lat_deg, m.lon_deg, m.alt_amsl_m)
+        self.offset = tuple(float(x) for x in self.offset_ned_m)
+        if self.origin_e7 is not None:
+            log.warning("EKF origin moved: local positions jump by %s m", np.round(self.offset_ned_m, 3))
+        self.origin_e7 = o
+        log.info("EKF origin %.7f %.7f %.3f m: local frame at %s m in the mission frame", o[0] * 1e-7, o[1] * 1e-7,
+                 o[2] * 1e-3, np.round(self.offset_ned_m, 3).tolist())
+
+    def _on_system_time(self, msg) -> None:
+        if msg.time_unix_usec > 0:
+            self.unix_offset_us = int(msg.time_unix_usec) - int(msg.time_boot_ms) * 1000
+
+    def _on_command_ack(self, msg) -> None:
+        fut = self._acks.get(msg.command)
+        if fut is not None and not fut.done() and msg.result != IN_PROGRESS:
+            fut.set_result(msg.result)
+
+    def _on_param_value(self, msg) -> None:
+        name = param_name(msg.param_id)
+        enc = self.dialect.param_encoding if self.dialect is not None else "bytewise"
+        try:
+            value = decode_param_value(msg.param_value, msg.param_type, enc)
+        except (KeyError, ValueError, OverflowError, struct.error):
+            self.dropped_nonfinite += 1
+            return
+        self._param_types[name] = msg.param_type
+        for fut in self._param_waiters.pop(name, []):
+            if not fut.done():
+                fut.set_result((value, msg.param_type))
+
+    def _on_statustext(self, msg) -> None:
+        log.info("autopilot: %s", msg.text)
+
+    # ---------------------------------------------------------------- derived state
+    def unix_us(self, time_boot_ms: int) -> int | None:
+        return None if self.unix_offset_us is None else int(time_boot_ms) * 1000 + self.unix_offset_us
+
+    # ---------------------------------------------------------------- outbound
+    def send(self, msgid: int, values) -> None:
+        """Queue a message for the autopilot (sent at the next flush)."""
+        self.ep.queue_fields(msgid, values)
+
+    def heartbeat(self) -> None:
+        self.send(md.MAVLINK_MSG_ID_HEARTBEAT, [MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, 4])
+
+    async def _exchange(self, send, waiter: asyncio.Future, what: str, timeout_s: float, retries: int):
+        for attempt in range(retries):
+            send()
+            self.ep.flush()
+            try:
+                return await asyncio.wait_for(asyncio.shield(waiter), timeout_s)
+            except asyncio.TimeoutError:
+                log.debug("%s: no answer (attempt %d/%d)", what, attempt + 1, retries)
+        waiter.cancel()
+        raise CommandError(f"{what}: no answer after {retries} tries of {timeout_s} s")
+
+    def _command_values(self, command: int, params, confirmation: int = 0) -> list:
+        p = [float(x) for x in params] + [0.0] * (7 - len(params))
+        return [self.target_sysid, 1, command, confirmation, *p]
+
+    def command_now(self, command: int, params) -> "asyncio.Task[int]":
+        """Queue the first COMMAND_LONG now (it leaves with the next flush, in order with
+        whatever is already queued) and return a task that waits for the ACK, resending
+        as `command` does."""
+        self.send(md.MAVLINK_MSG_ID_COMMAND_LONG, self._command_values(command, params))
+        return asyncio.ensure_future(self.command(command, params, first_sent=True))
+
+    async def command(self, command: int, params, timeout_s: float = 0.5, retries: int = 4,
+                      accept_temporarily_rejected: bool = False, first_sent: bool = False) -> int:
+        """COMMAND_LONG with retries; returns the MAV_RESULT.
+
+        Raises:
+            CommandError: no ACK, or a result other than ACCEPTED.
+        """
+        fut = asyncio.get_running_loop().create_future()
+        self._acks[command] = fut
+        sends = [first_sent]
+
+        def send() -> None:
+            if sends[0]:
+                sends[0] = False
+                return
+            self.send(md.MAVLINK_MSG_ID_COMMAND_LONG, self._command_values(command, params))
+
+        try:
+            result = await self._exchange(send, fut, f"command {command}", timeout_s, retries)
+        finally:
+            self._acks.pop(command, None)
+        if result != ACCEPTED and not (accept_temporarily_rejected and result == 1):
+            raise CommandError(f"command {command} refused: {RESULT_NAMES.get(result, result)}")
+        return result
+
+    async def request_message(self, msgid: int, timeout_s: float = 1.0, retries: int = 3):
+        """MAV_CMD_REQUEST_MESSAGE (512) until the message arrives; returns it.
+
+        Raises:
+            CommandError: it never came.
+        """
+        fut = asyncio.get_running_loop().create_future()
+        self._msg_waiters.setdefault(msgid, []).append(fut)
+        return await self._exchange(
+            lambda: self.send(md.MAVLINK_MSG_ID_COMMAND_LONG, [self.target_sysid, 1, 512, 0, msgid, 0, 0, 0, 0, 0, 0]),
+            fut, f"message {msgid}", timeout_s, retries)
+
+    async def set_message_interval(self, msgid: int, interval_s: float) -> None:
+        await self.command(511, [msgid, interval_s * 1e6])
+
+    async def get_param(self, name: str, timeout_s: float = 1.0, retries: int = 3) -> float:
+        """PARAM_REQUEST_READ by name. Raises CommandError."""
+        fut = asyncio.get_running_loop().create_future()
+        self._param_waiters.setdefault(name, []).append(fut)
+        value, _ = await self._exchange(
+            lambda: self.send(md.MAVLINK_MSG_ID_PARAM_REQUEST_READ, [self.target_sysid, 1, name.encode(), -1]),
+            fut, f"parameter {name}", timeout_s, retries)
+        return value
+
+    async def set_param(self, name: str, value: float, timeout_s: float = 1.0, retries: int = 3) -> float:
+        """PARAM_SET, then check the echo. Raises CommandError if it does not take."""
+        if name not in self._param_types:
+            await self.get_param(name)  # learns the type to send
+        ptype = self._param_types.get(name, MAV_PARAM_TYPE_REAL32)
+        enc = self.dialect.param_encoding
+        wire = encode_param_value(value, ptype, enc)
+        fut = asyncio.get_running_loop().create_future()
+        self._param_waiters.setdefault(name, []).append(fut)
+        got, _ = await self._exchange(
+            lambda: self.send(md.MAVLINK_MSG_ID_PARAM_SET, [self.target_sysid, 1, name.encode(), wire, ptype]),
+            fut, f"set {name}", timeout_s, retries)
+        if abs(got - value) > 1e-6 * max(1.0, abs(value)):
+            raise CommandError(f"parameter {name}: set to {value}, autopilot kept {got}")
+        return got

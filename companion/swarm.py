@@ -1,0 +1,202 @@
+"""The swarm contract: what vehicles tell each other, and what each has heard.
+
+Every vehicle publishes only its own state (`SwarmStates`, one row per vehicle:
+position and velocity in the mission frame, attitude, phase, flags and its
+transit-start value), stamped with the mission time at which it was measured.
+Each receiver keeps the newest state it has heard of every vehicle in a
+`SwarmView`. Messages may be lost, late, duplicated or reordered: a state never
+replaces a newer one, and every entry carries its stamp, so the agent can ask
+how old it is (`SwarmView.age_s`) and decide what it is still good for
+(docs/swarm.md). The receiver axis lets one array hold many receivers' views:
+the headless runner keeps one view per simulated vehicle, a companion keeps one.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+FLAG_ASSEMBLED = 1
+"""The vehicle has reached its formation slot at least once."""
+FLAG_OWN_VALID = 2
+"""The vehicle's own state estimate was finite and fresh when published."""
+FLAG_READY = 4
+"""Its autopilot reports it recovered from launch (throw or take-off done)."""
+
+
+@dataclass
+class SwarmStates:
+    """States published by k vehicles (the payload of the swarm link).
+
+    Attributes:
+        vehicle_id: (k,) int, index of the vehicle in the mission.
+        stamp_s: (k,) mission time at which the state was measured, s.
+        pos_ned_m: (k, 3) position, mission NED frame, m (NaN when invalid).
+        vel_ned_mps: (k, 3) velocity, mission NED frame, m/s.
+        att_q_wxyz: (k, 4) attitude NED->FRD, w first.
+        phase: (k,) int8 agent phase (companion.agent.Phase).
+        flags: (k,) uint8, FLAG_* bits.
+        t_go_s: (k,) the sender's transit start, mission time, s (NaN = none yet).
+    """
+
+    vehicle_id: np.ndarray
+    stamp_s: np.ndarray
+    pos_ned_m: np.ndarray
+    vel_ned_mps: np.ndarray
+    att_q_wxyz: np.ndarray
+    phase: np.ndarray
+    flags: np.ndarray
+    t_go_s: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.vehicle_id)
+
+    def select(self, idx) -> "SwarmStates":
+        """The rows selected by idx (index array or mask), as a new SwarmStates."""
+        return SwarmStates(*(np.asarray(getattr(self, f))[idx] for f in self.__dataclass_fields__))
+
+
+@dataclass
+class SwarmView:
+    """The newest state each of n receivers has heard from each of N vehicles.
+
+    Attributes:
+        pos_ned_m: (n, N, 3) position, mission NED, m; NaN = never heard.
+        vel_ned_mps: (n, N, 3) velocity, m/s.
+        stamp_s: (n, N) measurement time of that state, s; NaN = never heard.
+        phase: (n, N) int8 phase (0 = LAUNCH when never heard).
+        flags: (n, N) uint8 FLAG_* bits.
+        t_go_s: (n, N) that vehicle's transit start, s (NaN = none).
+        received: (n,) int, states applied per receiver (for link statistics).
+        ignored_old: (n,) int, states dropped because a newer one was already held.
+    """
+
+    pos_ned_m: np.ndarray
+    vel_ned_mps: np.ndarray
+    stamp_s: np.ndarray
+    phase: np.ndarray
+    flags: np.ndarray
+    t_go_s: np.ndarray
+    received: np.ndarray
+    ignored_old: np.ndarray
+
+    @classmethod
+    def unknown(cls, n_receivers: int, n_vehicles: int) -> "SwarmView":
+        """A view in which nothing has been heard yet."""
+        n, m = n_receivers, n_vehicles
+        return cls(np.full((n, m, 3), np.nan), np.full((n, m, 3), np.nan), np.full((n, m), np.nan),
+                   np.zeros((n, m), dtype=np.int8), np.zeros((n, m), dtype=np.uint8), np.full((n, m), np.nan),
+                   np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64))
+
+    @property
+    def n_receivers(self) -> int:
+        return self.stamp_s.shape[0]
+
+    @property
+    def n_vehicles(self) -> int:
+        return self.stamp_s.shape[1]
+
+    def age_s(self, t_s: float) -> np.ndarray:
+        """(n, N) age of every entry at mission time t_s, s; inf where never heard."""
+        age = t_s - self.stamp_s
+        return np.where(np.isnan(age), np.inf, age)
+
+    def assembled(self) -> np.ndarray:
+        """(n, N) bool: the FLAG_ASSEMBLED bit of every entry."""
+        return (self.flags & FLAG_ASSEMBLED) != 0
+
+    def receive(self, rows: np.ndarray, states: SwarmStates) -> int:
+        """Apply states[k] to receiver rows[k]; a state older than (or as old as)
+        the one held is ignored. Returns how many were applied.
+
+        Args:
+            rows: (k,) receiver index of each state.
+            states: k states; vehicle_id outside [0, N) or a non-finite stamp is
+                ignored (a hostile or corrupt message must not index out of range).
+        """
+        rows = np.asarray(rows, dtype=np.int64)
+        ids = np.asarray(states.vehicle_id, dtype=np.int64)
+        stamp = np.asarray(states.stamp_s, dtype=float)
+        valid = (ids >= 0) & (ids < self.n_vehicles) & (rows >= 0) & (rows < self.n_receivers) & np.isfinite(stamp)
+        ok = valid.copy()
+        ok[valid] = ~(stamp[valid] <= self.stamp_s[rows[valid], ids[valid]])  # a held NaN compares False
+        np.add.at(self.ignored_old, rows[valid & ~ok], 1)
+        k = np.flatnonzero(ok)
+        if len(k) == 0:
+            return 0
+        # Several states for one (receiver, vehicle) in one batch: the newest must land
+        # last, because fancy assignment keeps the last write.
+        k = k[np.argsort(stamp[k], kind="stable")]
+        r, v = rows[k], ids[k]
+        self.pos_ned_m[r, v] = states.pos_ned_m[k]
+        self.vel_ned_mps[r, v] = states.vel_ned_mps[k]
+        self.stamp_s[r, v] = stamp[k]
+        self.phase[r, v] = states.phase[k]
+        self.flags[r, v] = states.flags[k]
+        self.t_go_s[r, v] = states.t_go_s[k]
+        np.add.at(self.received, r, 1)
+        return len(k)
+
+    def receive_all(self, states: SwarmStates) -> None:
+        """Every receiver gets every state (a lossless broadcast); same newest-wins rule.
+
+        Each receiver's own vehicle is written too: the agent takes its own entry
+        first hand and never reads it from the view.
+        """
+        ids = np.asarray(states.vehicle_id, dtype=np.int64)
+        stamp = np.asarray(states.stamp_s, dtype=float)
+        ok = (ids >= 0) & (ids < self.n_vehicles) & np.isfinite(stamp)
+        ids, st = ids[ok], states.select(ok)
+        newer = ~(st.stamp_s[None, :] <= self.stamp_s[:, ids])  # (n, k)
+        if newer.all():
+            self.pos_ned_m[:, ids] = st.pos_ned_m
+            self.vel_ned_mps[:, ids] = st.vel_ned_mps
+            self.stamp_s[:, ids] = st.stamp_s
+            self.phase[:, ids] = st.phase
+            self.flags[:, ids] = st.flags
+            self.t_go_s[:, ids] = st.t_go_s
+            self.received += len(ids)
+            return
+        r, c = np.nonzero(newer)
+        self.receive(r, st.select(c))
+        self.ignored_old += np.sum(~newer, axis=1)
+
+    def receive_one(self, row: int, vehicle_id: int, stamp_s: float, pos_ned_m, vel_ned_mps, phase: int,
+                    flags: int, t_go_s: float) -> bool:
+        """One state for one receiver (the onboard path: no arrays built). Same rules
+        as receive. Returns True if it was applied."""
+        if not (0 <= vehicle_id < self.n_vehicles and stamp_s == stamp_s and abs(stamp_s) != np.inf):
+            return False
+        held = self.stamp_s[row, vehicle_id]
+        if held == held and stamp_s <= held:
+            self.ignored_old[row] += 1
+            return False
+        self.pos_ned_m[row, vehicle_id] = pos_ned_m
+        self.vel_ned_mps[row, vehicle_id] = vel_ned_mps
+        self.stamp_s[row, vehicle_id] = stamp_s
+        self.phase[row, vehicle_id] = phase
+        self.flags[row, vehicle_id] = flags
+        self.t_go_s[row, vehicle_id] = t_go_s
+        self.received[row] += 1
+        return True
+
+
+def swarm_due(t_us: int, rate_hz: float, vehicle_id, period_us: int):
+    """Whether vehicle(s) publish at the control tick t_us: once per 1/rate_hz, each
+    vehicle on its own tick offset (vehicle_id modulo the ticks per period), so that the
+    swarm does not talk all at once.
+
+    Integer microseconds on purpose: the agent (Unix time from its autopilot), the SITL
+    (which gates lockstep on these messages) and the headless runner must decide alike.
+
+    Args:
+        t_us: time of the control tick, µs (any epoch shared by the callers).
+        rate_hz: publishing rate.
+        vehicle_id: int or (k,) ints.
+        period_us: control tick period, µs (the setpoint period).
+    """
+    per = max(1, int(round(1e6 / (rate_hz * period_us))))
+    k = (int(t_us) + period_us // 2) // period_us
+    if isinstance(vehicle_id, (int, np.integer)):
+        return (k + int(vehicle_id)) % per == 0
+    return (k + np.asarray(vehicle_id)) % per == 0

@@ -1,0 +1,248 @@
+"""What a run recorded, shared by the headless runner and the SITL's recorder.
+
+`MissionTracker` turns a stream of (time, true fleet state, phases, flags, transit
+starts) into everything metrics.json and the figures read: the logged
+trajectories, first entry into each phase, separation and obstacle clearance,
+assembly and completion times. The headless runner feeds it its agents' outputs;
+the SITL feeds it the true physics state and what the agents published on the
+swarm radio. `save_run` / `load_run` carry a RunResult across processes.
+"""
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+from scipy.spatial.distance import pdist
+
+from companion import frames
+from companion.agent import Phase
+from companion.mission import Mission
+from companion.state import FleetSetpoint, FleetState
+from sim_bridge.scenario import ScenarioConfig
+
+
+@dataclass
+class SafetyTracker:
+    """Running minima of separation and obstacle clearance, sampled every agent tick."""
+
+    separation_m: float
+    min_pair_dist_m: float = math.inf
+    min_pair_time_s: float = math.nan
+    min_pair: tuple[int, int] = (-1, -1)
+    violating_pairs: set[tuple[int, int]] = field(default_factory=set)
+    min_clearance_m: float = math.inf
+    min_clearance_time_s: float = math.nan
+    min_clearance_vehicle: int = -1
+
+    def update(self, t_s: float, ids: np.ndarray, pos: np.ndarray, mission: Mission) -> None:
+        """ids: (k,) vehicle ids of the airborne vehicles, pos: (k, 3) their positions."""
+        if len(ids) >= 2:
+            d_min, i, j, n_close = _closest_pair(pos, self.separation_m)
+            if d_min < self.min_pair_dist_m:
+                self.min_pair_dist_m, self.min_pair_time_s = d_min, t_s
+                self.min_pair = (int(ids[i]), int(ids[j]))
+            if n_close:  # rare: list the offending pairs
+                d = pdist(pos)
+                for k in np.flatnonzero(d < self.separation_m):
+                    a, b = _pair_from_condensed(int(k), len(ids))
+                    self.violating_pairs.add((int(ids[a]), int(ids[b])))
+        if len(ids) and len(mission.obstacle_radii_m):
+            gap = (
+                np.linalg.norm(pos[:, None, :] - mission.obstacle_centres_ned_m[None], axis=2)
+                - mission.obstacle_radii_m[None]
+            )
+            k = np.unravel_index(np.argmin(gap), gap.shape)
+            if gap[k] < self.min_clearance_m:
+                self.min_clearance_m, self.min_clearance_time_s = float(gap[k]), t_s
+                self.min_clearance_vehicle = int(ids[k[0]])
+
+
+@njit(cache=True)
+def _closest_pair(pos: np.ndarray, threshold_m: float) -> tuple[float, int, int, int]:
+    """Smallest pairwise distance of (k, 3) points, its pair, and how many pairs are
+    closer than threshold_m (compiled: this runs every agent tick)."""
+    best, bi, bj, close = np.inf, 0, 1, 0
+    for i in range(pos.shape[0]):
+        for j in range(i + 1, pos.shape[0]):
+            d = np.sqrt((pos[i, 0] - pos[j, 0]) ** 2 + (pos[i, 1] - pos[j, 1]) ** 2 + (pos[i, 2] - pos[j, 2]) ** 2)
+            if d < best:
+                best, bi, bj = d, i, j
+            if d < threshold_m:
+                close += 1
+    return best, bi, bj, close
+
+
+def warm_up() -> None:
+    """Compile (or load from cache) the tracker's kernel before a real-time run needs it."""
+    _closest_pair(np.zeros((2, 3)), 1.0)
+
+
+def _pair_from_condensed(k: int, n: int) -> tuple[int, int]:
+    """Inverse of scipy's condensed pdist index for n points."""
+    i = int(n - 2 - math.floor(math.sqrt(-8 * k + 4 * n * (n - 1) - 7) / 2.0 - 0.5))
+    j = int(k + i + 1 - n * (n - 1) // 2 + (n - i) * ((n - i) - 1) // 2)
+    return i, j
+
+
+@dataclass
+class Recorder:
+    """Telemetry samples at the log rate; arrays are (T, N, ...) after finish()."""
+
+    t_s: list = field(default_factory=list)
+    pos_ned_m: list = field(default_factory=list)
+    vel_ned_mps: list = field(default_factory=list)
+    rot_body_to_ned: list = field(default_factory=list)
+    omega_body_radps: list = field(default_factory=list)
+    rotor_speed_radps: list = field(default_factory=list)
+    acc_cmd_ned_mps2: list = field(default_factory=list)
+    slot_ned_m: list = field(default_factory=list)
+    phase: list = field(default_factory=list)
+    counted: list = field(default_factory=list)
+    """Per sample and vehicle: its agent was alive (the fleet leaves out crashed companions)."""
+
+    def add(self, t_s: float, st: FleetState, sp: FleetSetpoint, slot: np.ndarray, phase: np.ndarray,
+            counted: np.ndarray | None = None) -> None:
+        self.t_s.append(t_s)
+        self.pos_ned_m.append(st.pos_ned_m.astype(np.float32))
+        self.vel_ned_mps.append(st.vel_ned_mps.astype(np.float32))
+        self.rot_body_to_ned.append(st.rot_body_to_ned.copy())  # -> quaternions once, in arrays()
+        self.omega_body_radps.append(st.omega_body_radps.astype(np.float32))
+        self.rotor_speed_radps.append(st.rotor_speed_radps.astype(np.float32))
+        self.acc_cmd_ned_mps2.append(sp.acc_ned_mps2.astype(np.float32))
+        self.slot_ned_m.append(slot.astype(np.float32))
+        self.phase.append(phase.astype(np.int8))
+        self.counted.append(np.ones(len(phase), bool) if counted is None else np.asarray(counted, bool))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        out = {k: np.asarray(v) for k, v in self.__dict__.items() if k != "rot_body_to_ned"}
+        out["att_q_wxyz"] = frames.rot_to_quat_wxyz(np.asarray(self.rot_body_to_ned)).astype(np.float32)
+        return out
+
+
+@dataclass
+class RunResult:
+    cfg: ScenarioConfig
+    mission: Mission
+    log: dict[str, np.ndarray]
+    release_s: np.ndarray
+    release_pos_ned_m: np.ndarray
+    phase_entry_s: np.ndarray  # (N, len(Phase)) first time each vehicle entered each phase
+    safety: SafetyTracker
+    t_go_s: float
+    t_go_spread_s: float
+    """Latest minus earliest transit start held by the vehicles at the end (0 = agreed)."""
+    t_all_assembled_s: float
+    t_complete_s: float
+    wall_s: float
+    sim_s: float
+    vehicle_steps: int
+    link: dict = field(default_factory=dict)
+    """Neighbour-transport statistics (NeighbourTransport.stats)."""
+
+
+
+
+class MissionTracker:
+    """Phase entries, assembly, completion, safety and the log of one run.
+
+    Args:
+        cfg: the scenario; mission: its Mission.
+        log_every: log one sample every this many updates.
+    """
+
+    def __init__(self, cfg: ScenarioConfig, mission: Mission, log_every: int):
+        n = mission.n
+        self.cfg, self.mission, self.log_every = cfg, mission, log_every
+        self.rec = Recorder()
+        self.safety = SafetyTracker(cfg.safety.separation_m)
+        self.phase = np.zeros(n, dtype=np.int8)
+        self.phase_entry = np.full((n, len(Phase)), np.nan)
+        self.phase_entry[:, Phase.LAUNCH] = 0.0
+        self.t_all_assembled = math.nan
+        self.t_complete = math.nan
+        self.t_go_s = math.nan
+        self.t_go_spread_s = math.nan
+        self.updates = 0
+
+    def update(self, t_s: float, state: FleetState, inner_sp: FleetSetpoint, released: np.ndarray,
+               phase: np.ndarray, assembled: np.ndarray, t_go_s: np.ndarray,
+               counted: np.ndarray | None = None) -> bool:
+        """One sample; returns True once the mission has been complete for completion_hold_s.
+
+        counted: (N,) bool, the vehicles completion is judged on (default all); a fleet
+        run leaves out vehicles whose agent has died (their autopilot holds and lands).
+        """
+        for v in np.flatnonzero(phase != self.phase):
+            self.phase_entry[v, phase[v]] = t_s
+        self.phase = np.array(phase, dtype=np.int8)
+        c = slice(None) if counted is None else np.asarray(counted, bool)
+        if math.isnan(self.t_all_assembled) and np.all(assembled[c]):
+            self.t_all_assembled = t_s
+        go = np.asarray(t_go_s, float)
+        go = go[np.isfinite(go)]
+        if len(go):
+            self.t_go_s, self.t_go_spread_s = float(go.min()), float(np.ptp(go))
+        m = self.mission
+        slot = m.slot_ned_m(m.tau_s(t_s, self.t_go_s))
+        airborne = np.flatnonzero(released)
+        self.safety.update(t_s, airborne, state.pos_ned_m[airborne], m)
+        if self.updates % self.log_every == 0:
+            self.rec.add(t_s, state, inner_sp, slot, self.phase, counted)
+        self.updates += 1
+        if math.isnan(self.t_complete) and np.all(self.phase[c] == Phase.HOVER):
+            if np.linalg.norm(state.pos_ned_m[c] - slot[c], axis=1).max() < self.cfg.completion_tol_m:
+                self.t_complete = t_s
+        return not math.isnan(self.t_complete) and t_s >= self.t_complete + self.cfg.completion_hold_s
+
+    def result(self, release_s: np.ndarray, release_pos_ned_m: np.ndarray, wall_s: float, sim_s: float,
+               vehicle_steps: int, link: dict) -> "RunResult":
+        return RunResult(self.cfg, self.mission, self.rec.arrays(), np.asarray(release_s, float),
+                         np.asarray(release_pos_ned_m, float), self.phase_entry, self.safety, self.t_go_s,
+                         self.t_go_spread_s, self.t_all_assembled, self.t_complete, wall_s, sim_s, vehicle_steps,
+                         link)
+
+
+def save_log(result: RunResult, out_dir: Path) -> Path:
+    """Write every recorded state of every vehicle to out_dir/telemetry.npz."""
+    path = out_dir / "telemetry.npz"
+    np.savez_compressed(
+        path, release_s=result.release_s, release_pos_ned_m=result.release_pos_ned_m,
+        phase_entry_s=result.phase_entry_s, offsets_ned_m=result.mission.offsets_ned_m, **result.log,
+    )
+    return path
+
+
+_SCALARS = ("t_go_s", "t_go_spread_s", "t_all_assembled_s", "t_complete_s", "wall_s", "sim_s", "vehicle_steps")
+
+
+def save_run(result: RunResult, out_dir: Path) -> None:
+    """telemetry.npz plus run.json: enough for load_run in another process."""
+    save_log(result, out_dir)
+    s = result.safety
+    info = {name: getattr(result, name) for name in _SCALARS}
+    info["link"] = result.link
+    info["safety"] = {"separation_m": s.separation_m, "min_pair_dist_m": s.min_pair_dist_m,
+                      "min_pair_time_s": s.min_pair_time_s, "min_pair": list(s.min_pair),
+                      "violating_pairs": sorted(list(p) for p in s.violating_pairs),
+                      "min_clearance_m": s.min_clearance_m, "min_clearance_time_s": s.min_clearance_time_s,
+                      "min_clearance_vehicle": s.min_clearance_vehicle}
+    (out_dir / "run.json").write_text(json.dumps(info, indent=1, allow_nan=True))
+
+
+def load_run(out_dir: Path, cfg: ScenarioConfig) -> RunResult:
+    """The RunResult save_run wrote (cfg: the same scenario)."""
+    info = json.loads((out_dir / "run.json").read_text())
+    data = dict(np.load(out_dir / "telemetry.npz"))
+    sf = info["safety"]
+    safety = SafetyTracker(sf["separation_m"], sf["min_pair_dist_m"], sf["min_pair_time_s"], tuple(sf["min_pair"]),
+                           {tuple(p) for p in sf["violating_pairs"]}, sf["min_clearance_m"],
+                           sf["min_clearance_time_s"], sf["min_clearance_vehicle"])
+    extra = ("release_s", "release_pos_ned_m", "phase_entry_s", "offsets_ned_m")
+    log = {k: v for k, v in data.items() if k not in extra}
+    return RunResult(cfg, Mission(cfg.mission), log, data["release_s"], data["release_pos_ned_m"],
+                     data["phase_entry_s"], safety, info["t_go_s"], info["t_go_spread_s"], info["t_all_assembled_s"],
+                     info["t_complete_s"], info["wall_s"], info["sim_s"], info["vehicle_steps"], info["link"])

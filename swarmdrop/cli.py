@@ -1,0 +1,105 @@
+"""The `swarmdrop` console script: one command, subcommands from both packages.
+
+`swarmdrop agent ...` is dispatched before anything else is imported, so that an
+onboard companion process loads only `companion` (no numba, scipy or matplotlib:
+they cost a small computer about 0.5 s and 100 MB per process). The simulator
+subcommands import their packages only when they run.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from companion.config import ConfigError
+    from sim_bridge.simulate import load_scenario, simulate, summary_lines
+
+    try:
+        cfg = load_scenario(args.config, args.seed)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    out = Path(args.out) if args.out else Path("runs") / Path(args.config).stem
+    try:
+        metrics = simulate(cfg, out, progress=not args.quiet, figures=False if args.no_figures else None)
+    except ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print("\n".join(summary_lines(metrics, out)))
+    if args.check and not all(metrics["checks"].values()):
+        return 1
+    return 0
+
+
+def _cmd_run(args: argparse.Namespace) -> int:
+    from companion.config import ConfigError
+    from sim_bridge.fleet import FleetOptions, parse_kill, run_fleet, summary_lines
+
+    out = Path(args.out) if args.out else Path("runs") / (Path(args.config).stem + "_fleet")
+    try:
+        opts = FleetOptions(out_dir=out, dialect=args.dialect, lockstep=args.lockstep, output=args.output,
+                            base_port=args.base_port, rate_hz=args.rate, kill=parse_kill(args.kill_agent),
+                            fix_delay_max_s=args.fix_delay_max, progress=not args.quiet,
+                            figures=not args.no_figures, agent_nice=args.agent_nice)
+        metrics, code = run_fleet(args.config, opts)
+    except (ConfigError, ValueError, OSError, RuntimeError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print("\n".join(summary_lines(metrics, out)))
+    if code:
+        return code
+    if args.check and not all(metrics["checks"].values()):
+        return 1
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="swarmdrop", description="Carrier-launched UAV swarm flight stack")
+    sub = p.add_subparsers(dest="command", required=True)
+    s = sub.add_parser("simulate", help="fly a scenario headless and write a run directory")
+    s.add_argument("config", help="scenario YAML, e.g. configs/paper_40.yaml")
+    s.add_argument("--out", help="run directory (default runs/<config name>)")
+    s.add_argument("--seed", type=int, help="override the config's random seed")
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
+    s.add_argument("--check", action="store_true", help="exit 1 if any acceptance check fails")
+    s.set_defaults(func=_cmd_simulate)
+    r = sub.add_parser("run", help="fly a scenario with the MAVLink SITL and one agent process per vehicle")
+    r.add_argument("config", help="scenario YAML, e.g. configs/paper_40.yaml")
+    r.add_argument("--out", help="run directory (default runs/<config name>_fleet)")
+    r.add_argument("--dialect", choices=("px4", "ardupilot"), default="px4", help="autopilots of the fleet")
+    r.add_argument("--lockstep", action="store_true", help="deterministic: simulation time waits for every agent")
+    r.add_argument("--output", choices=("acceleration", "attitude"), default="acceleration")
+    r.add_argument("--rate", type=float, default=50.0, help="agents' setpoint rate, Hz")
+    r.add_argument("--base-port", type=int, default=None, help="first of 3N+1 UDP ports (default: free ones)")
+    r.add_argument("--kill-agent", action="append", default=[], metavar="ID@T",
+                   help="kill agent ID at simulation time T s (fault injection; repeatable)")
+    r.add_argument("--fix-delay-max", type=float, default=0.0,
+                   help="vehicles get their first GNSS fix (EKF origin) at random times up to this, s")
+    r.add_argument("--agent-nice", type=int, default=5, help="niceness added to agents (the SITL keeps priority)")
+    r.add_argument("--quiet", action="store_true")
+    r.add_argument("--no-figures", action="store_true")
+    r.add_argument("--check", action="store_true", help="exit 1 if any acceptance check fails")
+    r.set_defaults(func=_cmd_run)
+    from companion.node import cli as agent_cli
+    from sim_bridge.sitl import cli as sitl_cli
+
+    sitl_cli.add_parser(sub)
+    agent_cli.add_parser(sub)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if argv and argv[0] == "agent":  # onboard: import nothing of the simulators
+        from companion.node.cli import main as agent_main
+
+        return agent_main(argv[1:])
+    args = build_parser().parse_args(argv)
+    return int(args.func(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
