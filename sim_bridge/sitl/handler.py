@@ -7,18 +7,20 @@ from __future__ import annotations
 
 import math
 import os
-import time
 from typing import Protocol
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
+from companion.link.params import param_name  # noqa: E402
+from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target  # noqa: E402
 from sim_bridge.sitl.autopilot import (  # noqa: E402
-    ACCEPTED, DENIED, SEV_CRITICAL, UNSUPPORTED, Autopilot,
+    ACCEPTED, DENIED, SEV_CRITICAL, TEMPORARILY_REJECTED, UNSUPPORTED, Autopilot,
 )
-from sim_bridge.sitl.offboard import Rejected, decode_attitude_target, decode_position_target  # noqa: E402
 from sim_bridge.sitl.params_table import ParamTable  # noqa: E402
-from sim_bridge.sitl.telemetry import HEARTBEAT, REQUESTABLE, STREAMS, TelemetryBuilder  # noqa: E402
+from sim_bridge.sitl.telemetry import (  # noqa: E402
+    HEARTBEAT, REQUESTABLE, STREAMS, TelemetryBuilder,
+)
 
 CMD_NAV_LAND = 21
 CMD_NAV_TAKEOFF = 22
@@ -32,7 +34,14 @@ CMD_SD_RELEASE = 31010  # MAV_CMD_USER_1: release this vehicle from the carrier 
 
 COMMAND_INT_OK = frozenset({CMD_NAV_LAND, CMD_NAV_TAKEOFF, CMD_DO_SET_MODE, CMD_ARM_DISARM,
                             CMD_SET_MESSAGE_INTERVAL, CMD_REQUEST_MESSAGE, CMD_GET_MESSAGE_INTERVAL,
-                            CMD_SD_RELEASE})
+                            CMD_REQUEST_AUTOPILOT_CAPABILITIES, CMD_SD_RELEASE})
+
+
+PARAM_LIST_RATE_HZ = 1000.0
+"""PARAM_VALUEs per second per listing client (PX4 paces its list by link bandwidth): a full
+table takes tens of ms, and a flood of PARAM_REQUEST_LIST cannot queue more than one list."""
+PARAM_LISTS_MAX = 64
+"""Listings in progress at once (all vehicles and clients); a new one beyond this replaces the oldest."""
 
 
 class SitlContext(Protocol):
@@ -47,6 +56,8 @@ class SitlContext(Protocol):
     def set_message_interval(self, k: int, msgid: int, interval_s: float | None) -> None: ...
     def message_interval_s(self, k: int, msgid: int) -> float: ...
     def on_setpoint(self, k: int) -> None: ...
+    def on_companion_tick(self, k: int, time_usec: int) -> None: ...
+    def set_origin_geodetic(self, k: int, lat_e7: int, lon_e7: int, alt_mm: int) -> None: ...
     def after_change(self, k: int) -> None: ...
 
 
@@ -54,6 +65,10 @@ class MessageRouter:
     def __init__(self, ctx: SitlContext):
         self.ctx = ctx
         self._last_reject: dict[int, str] = {}
+        self._lists: dict[tuple[int, int, object], list] = {}
+        """(vehicle, endpoint id, client address) -> [endpoint, next index, budget]: paced listings."""
+        self.param_lists_replaced = 0
+        """Listings dropped because PARAM_LISTS_MAX others were in progress."""
         self._dispatch = {
             "COMMAND_LONG": self._command_long,
             "COMMAND_INT": self._command_int,
@@ -66,6 +81,8 @@ class MessageRouter:
             "PING": self._ping,
             "MISSION_REQUEST_LIST": self._mission_list,
             "FILE_TRANSFER_PROTOCOL": self._ftp,
+            "SET_GPS_GLOBAL_ORIGIN": self._set_origin,
+            "SWARMDROP_TICK": self._companion_tick,
         }
 
     def targets(self, msg, vehicle: int | None) -> list[int]:
@@ -83,6 +100,10 @@ class MessageRouter:
 
     def handle(self, endpoint, msg, addr, vehicle: int | None) -> None:
         fn = self._dispatch.get(msg.get_type())
+        if msg.get_type() == "SWARMDROP_TICK":  # no target fields: a companion's own vehicle
+            if vehicle is not None:
+                fn(vehicle, msg, endpoint, addr)
+            return
         if fn is None:
             return
         if msg.get_type() in ("TIMESYNC", "PING") and vehicle is None:
@@ -97,6 +118,13 @@ class MessageRouter:
     def _ack(self, k, msg, endpoint, addr, command, result) -> None:
         self.ctx.send(k, mavlink.MAVLink_command_ack_message(
             command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), endpoint, addr)
+
+    def _reply_message(self, k, msgid: int) -> tuple[int, object | None]:
+        """(ACK result, message) for REQUEST_MESSAGE of msgid."""
+        msg = self.ctx.telemetry.build(k, msgid, self.ctx.sim_s)
+        if msg is None:  # e.g. GPS_GLOBAL_ORIGIN before the first fix
+            return TEMPORARILY_REJECTED, None
+        return ACCEPTED, msg
 
     def _command_long(self, k, msg, endpoint, addr) -> None:
         p = (msg.param1, msg.param2, msg.param3, msg.param4, msg.param5, msg.param6, msg.param7)
@@ -131,8 +159,7 @@ class MessageRouter:
             if not math.isfinite(msgid) or int(msgid) not in REQUESTABLE:
                 result = DENIED
             else:
-                result = ACCEPTED
-                followup = ctx.telemetry.build(k, int(msgid), now)
+                result, followup = self._reply_message(k, int(msgid))
         else:
             result = UNSUPPORTED
         self._ack(k, msg, endpoint, addr, command, result)
@@ -144,6 +171,8 @@ class MessageRouter:
             return DENIED
         msgid = int(msgid_f)
         if msgid not in STREAMS and msgid != HEARTBEAT:
+            return DENIED
+        if interval_us > 2**31 - 1:  # MESSAGE_INTERVAL carries an int32: refuse what it cannot report
             return DENIED
         if interval_us < 0:
             value = math.inf
@@ -166,13 +195,14 @@ class MessageRouter:
         ap = self.ctx.autopilots[k]
         sp = decode_position_target(
             msg.type_mask, msg.coordinate_frame, (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz),
-            (msg.afx, msg.afy, msg.afz), msg.yaw, msg.yaw_rate, ap.rot)
+            (msg.afx, msg.afy, msg.afz), msg.yaw, msg.yaw_rate, ap.rot, guided_rules=not ap.px4)
         self._offboard(k, ap, sp)
 
     def _attitude_target(self, k, msg, endpoint, addr) -> None:
         ap = self.ctx.autopilots[k]
         sp = decode_attitude_target(msg.type_mask, tuple(msg.q),
-                                    (msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate), msg.thrust)
+                                    (msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate), msg.thrust,
+                                    guided_rules=not ap.px4)
         self._offboard(k, ap, sp)
 
     def _offboard(self, k, ap, sp) -> None:
@@ -185,6 +215,14 @@ class MessageRouter:
         ap.on_offboard_setpoint(sp, self.ctx.sim_s)
         self.ctx.on_setpoint(k)
 
+    def _companion_tick(self, k, msg, endpoint, addr) -> None:
+        self.ctx.on_companion_tick(k, msg.time_usec)
+
+    def _set_origin(self, k, msg, endpoint, addr) -> None:
+        if msg.target_system != k + 1:  # PX4: only for its own sysid, never broadcast
+            return
+        self.ctx.set_origin_geodetic(k, msg.latitude, msg.longitude, msg.altitude)
+
     # ---- parameters ------------------------------------------------------------------
     def _param_value(self, k, index) -> mavlink.MAVLink_message:
         table = self.ctx.params[k]
@@ -192,20 +230,46 @@ class MessageRouter:
         return mavlink.MAVLink_param_value_message(name.encode(), wire, ptype, len(table), index)
 
     def _param_list(self, k, msg, endpoint, addr) -> None:
-        for i in range(len(self.ctx.params[k])):
-            self.ctx.send(k, self._param_value(k, i), endpoint, addr)
+        """Start (or restart) a paced listing for this client: `pump_params` sends it.
+        A repeated request restarts the one listing instead of queueing another."""
+        key = (k, id(endpoint), addr)
+        if key not in self._lists and len(self._lists) >= PARAM_LISTS_MAX:
+            self._lists.pop(next(iter(self._lists)))
+            self.param_lists_replaced += 1
+        self._lists[key] = [endpoint, 0, 1.0]
+
+    def pump_params(self, dt_s: float) -> set:
+        """Send the listings in progress, PARAM_LIST_RATE_HZ each, for dt_s of wall time;
+        returns the endpoints that got messages (to flush)."""
+        touched = set()
+        for key in list(self._lists):
+            k, _, addr = key
+            item = self._lists[key]
+            endpoint, i, budget = item
+            budget = min(budget + dt_s * PARAM_LIST_RATE_HZ, 0.05 * PARAM_LIST_RATE_HZ)
+            n = len(self.ctx.params[k])
+            while budget >= 1.0 and i < n:
+                self.ctx.send(k, self._param_value(k, i), endpoint, addr)
+                i += 1
+                budget -= 1.0
+            touched.add(endpoint)
+            if i >= n:
+                del self._lists[key]
+            else:
+                item[1], item[2] = i, budget
+        return touched
 
     def _param_read(self, k, msg, endpoint, addr) -> None:
         table = self.ctx.params[k]
         if msg.param_index >= 0:
             idx = msg.param_index if msg.param_index < len(table) else None
         else:
-            idx = table.index_of(_name(msg.param_id))
+            idx = table.index_of(param_name(msg.param_id))
         if idx is not None:
             self.ctx.send(k, self._param_value(k, idx), endpoint, addr)
 
     def _param_set(self, k, msg, endpoint, addr) -> None:
-        idx = self.ctx.params[k].set_wire(_name(msg.param_id), msg.param_value, msg.param_type)
+        idx = self.ctx.params[k].set_wire(param_name(msg.param_id), msg.param_value, msg.param_type)
         if idx is not None:
             self.ctx.send(k, self._param_value(k, idx), endpoint, addr)
 
@@ -213,8 +277,8 @@ class MessageRouter:
     def _timesync(self, k, msg, endpoint, addr) -> None:
         if msg.tc1 != 0:
             return
-        now_ns = time.monotonic_ns()
-        reply = mavlink.MAVLink_timesync_message(now_ns, msg.ts1)
+        # tc1 is the autopilot's boot clock in ns: simulation time (PX4 SITL in lockstep too).
+        reply = mavlink.MAVLink_timesync_message(int(round(self.ctx.sim_s * 1e9)), msg.ts1)
         if hasattr(reply, "target_system"):
             reply.target_system, reply.target_component = msg.get_srcSystem(), msg.get_srcComponent()
         self.ctx.send(k, reply, endpoint, addr)
@@ -245,7 +309,3 @@ class MessageRouter:
             0, msg.get_srcSystem(), msg.get_srcComponent(), list(reply)), endpoint, addr)
 
 
-def _name(param_id) -> str:
-    if isinstance(param_id, bytes):
-        param_id = param_id.decode("ascii", "replace")
-    return param_id.split("\x00", 1)[0]
