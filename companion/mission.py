@@ -119,6 +119,18 @@ class SetpointConfig:
 
 
 @dataclass(config=STRICT)
+class GeofenceConfig:
+    """A box in the mission frame that the agent's setpoints never leave (docs/setpoint-hygiene.md)."""
+
+    min_ned_m: Vec3
+    max_ned_m: Vec3
+
+    def __post_init__(self) -> None:
+        if not all(lo < hi for lo, hi in zip(self.min_ned_m, self.max_ned_m)):
+            raise ValueError("geofence: every min_ned_m axis must be below its max_ned_m axis")
+
+
+@dataclass(config=STRICT)
 class GeodeticOrigin:
     """The geodetic point at which the mission NED frame has its origin (WGS-84)."""
 
@@ -156,6 +168,8 @@ class MissionConfig:
     them), or armed and taken off from the ground by their agents."""
     takeoff_alt_m: float = Field(5.0, gt=0.5, le=500)
     """Ground launch: climb this far above home before assembling."""
+    geofence: GeofenceConfig | None = None
+    """Optional: a mission-frame box the agent keeps its setpoints in (None: no fence)."""
     origin: GeodeticOrigin | None = None
     """Geodetic origin of the mission frame; every vehicle's local frame is converted
     to it. Needed by `swarmdrop agent`; the headless runner flies in the mission frame."""

@@ -75,7 +75,10 @@ def test_attitude_target_masks():
     sp = decode_attitude_target(7, (2.0, 0, 0, 0), (0, 0, 0), 0.6)
     assert sp.att_q_wxyz == pytest.approx([1, 0, 0, 0]) and sp.thrust_norm == 0.6
     sp = decode_attitude_target(128, (1, 0, 0, 0), (0.1, 0.2, NAN), 0.5)
-    assert sp.att_q_wxyz is None and sp.body_rate_radps == pytest.approx([0.1, 0.2, 0.0])
+    assert sp.att_q_wxyz is None and sp.body_rate_radps[:2] == pytest.approx([0.1, 0.2])
+    assert math.isnan(sp.body_rate_radps[2])  # kept for the hygiene check, which rejects it
+    from companion.link.limits import SetpointLimits, check_attitude
+    assert isinstance(check_attitude(sp, SetpointLimits()), Rejected)
     assert decode_attitude_target(64 | 7, (1, 0, 0, 0), (0, 0, 0), 0.9).thrust_norm == 0.0  # PX4: thrust 0
     assert isinstance(decode_attitude_target(128 | 7, (1, 0, 0, 0), (0, 0, 0), 0.5), Rejected)
     assert isinstance(decode_attitude_target(7, (NAN, 0, 0, 0), (0, 0, 0), 0.5), Rejected)

@@ -151,13 +151,11 @@ def decode_attitude_target(
         if not type_mask & ATT_ATTITUDE_IGNORE and not abs(math.sqrt(sum(float(x) * float(x) for x in q_wxyz))
                                                            - 1.0) <= 1e-3:
             return Rejected("SET_ATTITUDE_TARGET quaternion not unit")
-    if type_mask & ATT_THROTTLE_IGNORE or not math.isfinite(thrust):
-        thrust_norm = 0.0
-    else:
-        thrust_norm = min(max(float(thrust), 0.0), 1.0)
+    # Non-finite thrust or rates stay non-finite here: companion.link.limits.check_attitude
+    # rejects them (treating NaN thrust as 0 dropped the vehicle out of the sky).
+    thrust_norm = 0.0 if type_mask & ATT_THROTTLE_IGNORE else float(thrust)
     rate_bits = (ATT_ROLL_RATE_IGNORE, ATT_PITCH_RATE_IGNORE, ATT_YAW_RATE_IGNORE)
     rates = _axes(body_rates_radps, type_mask, rate_bits, 0.0)
-    rates[~np.isfinite(rates)] = 0.0
     if not type_mask & ATT_ATTITUDE_IGNORE:
         q = np.array(q_wxyz, dtype=float)
         norm = float(np.linalg.norm(q))

@@ -33,6 +33,7 @@ from companion.frames import rot_to_quat_wxyz
 from companion.link.dialects import Mode
 from companion.link.endpoints import MavEndpoint, UdpLink, open_link
 from companion.link.msgdef import swarmdrop as md
+from companion.link.limits import SetpointLimits, clamp_tilt, clamp_velocity, fence_trajectory
 from companion.link.setpoints import attitude_target_fields, position_target_fields
 from companion.link.wire import Codec
 from companion.mission import Mission
@@ -155,6 +156,8 @@ class AgentNode:
         self.deadline_misses = 0
         self.intervals = 0
         self.unsendable = 0
+        self.limits = SetpointLimits()
+        """PX4's default offboard limits: the agent's setpoints stay inside them on either autopilot."""
         self.start_wall = time.monotonic()
         self.start_cpu = time.process_time()
         self.ready_wall_s = math.nan
@@ -276,6 +279,13 @@ class AgentNode:
         v = self.vehicle
         off = v.offset
         px, py, pz, vx, vy, vz, ax, ay, az = plan.at(t)
+        # Setpoint hygiene (companion.link.limits): what PX4 would clamp, we never send.
+        vx, vy, vz = clamp_velocity(vx, vy, vz, self.limits)
+        fence = self.mission.cfg.geofence
+        if fence is not None:
+            own = (lp[0] + off[0], lp[1] + off[1], lp[2] + off[2])
+            (px, py, pz), (vx, vy, vz), (ax, ay, az) = fence_trajectory(
+                (px, py, pz), (vx, vy, vz), (ax, ay, az), fence.min_ned_m, fence.max_ned_m, own)
         try:
             if self.cfg.output == "attitude" and plan.attitude_ok and self.hover_thrust == self.hover_thrust:
                 own = (lp[0] + off[0], lp[1] + off[1], lp[2] + off[2]), lp[3:6]
@@ -303,7 +313,7 @@ class AgentNode:
         row = [*target] + [math.nan] * 8  # packed setpoint row (companion.control.geometric.SP_*): no attitude
         rot = quat_to_rot(*q)  # row-major 9-tuple, as position_law takes it
         rot_d, f, _ = position_law(tuple(own[0]), tuple(own[1]), rot, row, self.ctrl_prm)
-        q_d = rot_to_quat_wxyz(np.array(rot_d).reshape(3, 3))
+        q_d = clamp_tilt(rot_to_quat_wxyz(np.array(rot_d).reshape(3, 3)), self.limits.tilt_max_rad)
         weight = self.cfg.mission.vehicle.mass_kg * GRAVITY_MPS2
         thrust = self.vehicle.dialect.thrust_field(f / weight, self.hover_thrust, rot[8])  # rot[8]: cos(tilt)
         return attitude_target_fields(q_d, thrust)

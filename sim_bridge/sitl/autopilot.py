@@ -276,6 +276,17 @@ class Autopilot:
             self._publish()
         return True
 
+    def on_invalid_setpoint(self) -> None:
+        """A trajectory setpoint left an axis without a finite source (PX4: "invalid
+        setpoints"): in Offboard the vehicle stops (zero velocity) and holds its heading. The
+        offboard signal is not refreshed, so a stream of invalid setpoints ends in the
+        offboard-loss failsafe after COM_OF_LOSS_T, as in PX4."""
+        if self.mode != Mode.OFFBOARD or self._offb is None:
+            return
+        nan3 = np.full(3, np.nan)
+        self._offb = TrajectorySetpoint(nan3, np.zeros(3), nan3.copy(), self.yaw, math.nan)
+        self._publish()
+
     # ---- events from the server -------------------------------------------------
     def on_released(self, now_s: float) -> None:
         """The server has placed the vehicle at the carrier with its release attitude."""

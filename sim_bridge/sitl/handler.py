@@ -12,6 +12,7 @@ from typing import Protocol
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
+from companion.link.limits import INVALID_SETPOINTS, check_attitude, check_trajectory  # noqa: E402
 from companion.link.params import param_name  # noqa: E402
 from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target  # noqa: E402
 from sim_bridge.sitl.autopilot import (  # noqa: E402
@@ -196,6 +197,8 @@ class MessageRouter:
         sp = decode_position_target(
             msg.type_mask, msg.coordinate_frame, (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz),
             (msg.afx, msg.afy, msg.afz), msg.yaw, msg.yaw_rate, ap.rot, guided_rules=not ap.px4)
+        if not isinstance(sp, Rejected):
+            sp = check_trajectory(sp, ap.knobs.limits())
         self._offboard(k, ap, sp)
 
     def _attitude_target(self, k, msg, endpoint, addr) -> None:
@@ -203,6 +206,8 @@ class MessageRouter:
         sp = decode_attitude_target(msg.type_mask, tuple(msg.q),
                                     (msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate), msg.thrust,
                                     guided_rules=not ap.px4)
+        if not isinstance(sp, Rejected):
+            sp = check_attitude(sp, ap.knobs.limits(), ap.knobs.thrust_is_thrust)
         self._offboard(k, ap, sp)
 
     def _offboard(self, k, ap, sp) -> None:
@@ -210,6 +215,8 @@ class MessageRouter:
             if self._last_reject.get(k) != sp.reason:  # one STATUSTEXT per new reason, no flood
                 self._last_reject[k] = sp.reason
                 ap.events.append((SEV_CRITICAL, sp.reason))
+            if sp.reason == INVALID_SETPOINTS:  # PX4's failsafe setpoint: stop where it is
+                ap.on_invalid_setpoint()
             return
         self._last_reject.pop(k, None)
         ap.on_offboard_setpoint(sp, self.ctx.sim_s)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 from companion.link.dialects import AutopilotDialect
 from companion.link.dialects.ardupilot import GUID_OPTIONS_THRUST
+from companion.link.limits import SetpointLimits
 from companion.link.params import (
     INT_FORMATS, MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, Encoding, decode_param_value, encode_param_value,
 )
@@ -65,6 +66,14 @@ def _px4_specs(inner: InnerLoopConfig, sysid: int, hover_thrust: float) -> list[
         _f("MPC_LAND_SPEED", 0.7, 0.1, 5.0, "landing descent speed, m/s"),
         _f("MPC_TILTMAX_AIR", inner.geometric.tilt_max_deg, 1.0, 89.0, "tilt limit of the position controller, deg"),
         _f("MPC_THR_HOVER", hover_thrust, 0.05, 0.95, "normalised collective thrust that hovers"),
+        _f("MPC_THR_MIN", 0.12, 0.0, 1.0, "offboard thrust floor (normalised)"),
+        _f("MPC_THR_MAX", 1.0, 0.0, 1.0, "offboard thrust ceiling (normalised)"),
+        _f("MPC_XY_VEL_MAX", 12.0, 0.0, 20.0, "horizontal speed limit of offboard velocity setpoints, m/s"),
+        _f("MPC_Z_VEL_MAX_UP", 3.0, 0.5, 8.0, "climb speed limit, m/s"),
+        _f("MPC_Z_VEL_MAX_DN", 1.5, 0.5, 4.0, "descent speed limit, m/s"),
+        _f("MC_ROLLRATE_MAX", 220.0, 0.0, 1800.0, "roll rate limit, deg/s"),
+        _f("MC_PITCHRATE_MAX", 220.0, 0.0, 1800.0, "pitch rate limit, deg/s"),
+        _f("MC_YAWRATE_MAX", 200.0, 0.0, 1800.0, "yaw rate limit, deg/s"),
         _f("COM_OF_LOSS_T", 1.0, 0.0, 60.0, "offboard setpoint timeout before Hold, s"),
         _f("SD_OBL_LAND_T", 5.0, -1.0, 3600.0, "time in Hold after offboard loss before Land, s (-1 never)"),
         _f("COM_DISARM_PRFLT", 10.0, -1.0, 20.0, "disarm if armed and not taken off within, s (<=0 off)"),
@@ -262,6 +271,27 @@ class Knobs:
     def thrust_is_thrust(self) -> bool:
         """SET_ATTITUDE_TARGET.thrust is thrust (PX4 always; ArduPilot with GUID_OPTIONS bit 3)."""
         return self.px4 or (int(self.t["GUID_OPTIONS"]) & GUID_OPTIONS_THRUST) != 0
+
+    def limits(self) -> SetpointLimits:
+        """Offboard setpoint limits (companion.link.limits): PX4's parameters; ArduPilot
+        keeps PX4's defaults except its own tilt limit (ANGLE_MAX). Cached per table version."""
+        t = self.t
+        if getattr(self, "_lim_version", None) == t.version:
+            return self._lim
+        self._lim_version, self._lim = t.version, self._limits()
+        return self._lim
+
+    def _limits(self) -> SetpointLimits:
+        t = self.t
+        tilt = math.radians(t._tilt_max_deg())
+        if not self.px4:
+            return SetpointLimits(tilt_max_rad=tilt)
+        d = math.radians
+        return SetpointLimits(
+            xy_vel_max_mps=t["MPC_XY_VEL_MAX"], z_vel_max_up_mps=t["MPC_Z_VEL_MAX_UP"],
+            z_vel_max_dn_mps=t["MPC_Z_VEL_MAX_DN"], tilt_max_rad=tilt, thr_min=t["MPC_THR_MIN"],
+            thr_max=max(t["MPC_THR_MIN"], t["MPC_THR_MAX"]), roll_rate_max_radps=d(t["MC_ROLLRATE_MAX"]),
+            pitch_rate_max_radps=d(t["MC_PITCHRATE_MAX"]), yaw_rate_max_radps=d(t["MC_YAWRATE_MAX"]))
 
     def geofence(self) -> tuple[int, float, float]:
         """(action, horizontal radius m, maximum height m); radius/height 0 = off."""

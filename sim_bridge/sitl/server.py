@@ -132,6 +132,12 @@ class SitlServer:
         self._sp_synced = np.full(n, -1)
         self._rate_q = np.tile([1.0, 0.0, 0.0, 0.0], (n, 1))
         self._rates_only = np.zeros(n, bool)
+        self._pos_target = np.full((n, 3), np.nan)
+        """Offboard position targets as received; the inner loop flies a carrot toward them."""
+        self._carrot_m = np.full((n, 3), np.inf)
+        """Per vehicle: how far ahead the carrot may be (xy, up, down), so that the position
+        loop's steady speed stays under MPC_XY_VEL_MAX / MPC_Z_VEL_MAX_UP / _DN (PX4 caps the
+        velocity its position controller asks for; a 1e30 m target must not be flown flat out)."""
         self.telemetry = TelemetryBuilder(self.state, self.autopilots, cfg.home, self.home_ned_m,
                                           cfg.time.epoch_unix_s)
         # The first GNSS fix of each vehicle (its EKF origin is where it is then); drawn
@@ -256,6 +262,12 @@ class SitlServer:
             return
         self._sp_synced[k] = ap.sp_version
         self.fleet_sp.assign(slice(k, k + 1), ap.sp)
+        self._pos_target[k] = self.fleet_sp.pos_ned_m[k]
+        if np.isfinite(self._pos_target[k]).any():
+            lim, t = ap.knobs.limits(), self.params[k]
+            ratio = t["SD_GEO_KV"] / t["SD_GEO_KX"] if t["SD_GEO_KX"] > 0 else math.inf
+            self._carrot_m[k] = (lim.xy_vel_max_mps * ratio, lim.z_vel_max_up_mps * ratio,
+                                 lim.z_vel_max_dn_mps * ratio)
         self._rates_only[k] = ap.rates_only
         if ap.rates_only and ap.rate_q_reset:
             ap.rate_q_reset = False
@@ -313,6 +325,21 @@ class SitlServer:
             else:
                 self.state.pos_ned_m[k] = cpos
 
+    def _fly_carrots(self) -> None:
+        """Position targets further than the carrot distance are flown toward, not jumped to."""
+        tgt = self._pos_target
+        rows = np.flatnonzero(np.isfinite(tgt[:, 0]) | np.isfinite(tgt[:, 2]))
+        if not len(rows):
+            return
+        pos = self.state.pos_ned_m[rows]
+        err = tgt[rows] - pos
+        d = self._carrot_m[rows]
+        h = np.hypot(err[:, 0], err[:, 1])
+        scale = np.where(h > d[:, 0], d[:, 0] / np.maximum(h, 1e-12), 1.0)
+        err[:, :2] *= scale[:, None]
+        err[:, 2] = np.clip(err[:, 2], -d[:, 1], d[:, 2])
+        self.fleet_sp.pos_ned_m[rows] = pos + err  # NaN axes stay NaN
+
     def step_once(self) -> None:
         """Advance simulation time by one tick (physics, carrier, autopilots)."""
         t0 = time.perf_counter()
@@ -321,6 +348,7 @@ class SitlServer:
             self._rate_q[m] = integrate_quat_body_rates(self._rate_q[m], self.fleet_sp.body_rate_radps[m],
                                                         self.tick_s)
             self.fleet_sp.att_q_wxyz[m] = self._rate_q[m]
+        self._fly_carrots()
         active = np.fromiter((ap.needs_physics for ap in self.autopilots), bool, self.n)
         self.vehicle_steps += int(active.sum()) * self.steps_per_tick
         if active.any():
