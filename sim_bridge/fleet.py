@@ -65,6 +65,8 @@ class FleetOptions:
     python: str = sys.executable
     agent_nice: int = 0
     """Added niceness of agents (the SITL keeps priority, so simulated physics stays honest)."""
+    signing: bool = False
+    """Sign every link (SITL endpoints, autopilot links, swarm link) with a fresh key in the run directory."""
 
 
 @dataclass
@@ -247,6 +249,7 @@ class Fleet:
             args.append("--lockstep")
         if o.fix_delay_max_s > 0:
             args += ["--fix-delay-max", str(o.fix_delay_max_s)]
+        args += self._signing_args()
         self.sitl = self._popen(args, subprocess.PIPE)
         self._sitl_lines: list[str] = []
         threading.Thread(target=self._read_sitl, daemon=True).start()
@@ -282,7 +285,19 @@ class Fleet:
                     "--no-stderr-log", "--stats", str(adir / f"agent_{k:02d}.json")]
             if o.lockstep:
                 args.append("--lockstep")
+            args += self._signing_args()
             self.agents.append(self._popen(args, subprocess.DEVNULL, o.agent_nice))
+
+    def _signing_args(self) -> list[str]:
+        """--signing require with this run's key (created once, owner-readable only)."""
+        if not self.opts.signing:
+            return []
+        key = self.out / "signing.key"
+        if not key.exists():
+            from companion.link.signing import write_key
+
+            write_key(key)
+        return ["--signing", "require", "--signing-key", str(key)]
 
     def stop(self) -> None:
         """Stop every process: SIGTERM, then SIGKILL after a grace period (no orphans)."""
@@ -417,7 +432,20 @@ class Fleet:
             "agent_pss_mb": {"mean": f(pss, np.mean), "max": f(pss, np.max)},
             "sitl_cpu_fraction_of_core": self.sitl_cpu,
             "swarm_link_bytes_per_s_per_vehicle": (self.status.get("link_bytes_per_s_per_vehicle")),
+            "signing": self._signing_totals(stats),
         }
+
+    def _signing_totals(self, stats: list[dict]) -> dict | None:
+        """What the agents' signing layers dropped, summed per link (None when unsigned)."""
+        if not self.opts.signing:
+            return None
+        out: dict[str, dict[str, int]] = {}
+        for s in stats:
+            for link, counters in (s.get("signing") or {}).items():
+                tot = out.setdefault(link, {})
+                for name, value in counters.items():
+                    tot[name] = tot.get(name, 0) + int(value)
+        return out
 
     def report(self, wall_s: float) -> dict:
         from sim_bridge.figures import write_figures

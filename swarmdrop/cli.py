@@ -42,7 +42,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
         opts = FleetOptions(out_dir=out, dialect=args.dialect, lockstep=args.lockstep, output=args.output,
                             base_port=args.base_port, rate_hz=args.rate, kill=parse_kill(args.kill_agent),
                             fix_delay_max_s=args.fix_delay_max, progress=not args.quiet,
-                            figures=not args.no_figures, agent_nice=args.agent_nice)
+                            figures=not args.no_figures, agent_nice=args.agent_nice, signing=args.signing)
         metrics, code = run_fleet(args.config, opts)
     except (ConfigError, ValueError, OSError, RuntimeError) as err:
         print(f"error: {err}", file=sys.stderr)
@@ -71,6 +71,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="run directory (default runs/<config name>_fleet)")
     r.add_argument("--dialect", choices=("px4", "ardupilot"), default="px4", help="autopilots of the fleet")
     r.add_argument("--lockstep", action="store_true", help="deterministic: simulation time waits for every agent")
+    r.add_argument("--signing", action="store_true",
+                   help="MAVLink 2 signing (required) on every link, with a fresh key in the run directory")
     r.add_argument("--output", choices=("acceleration", "attitude"), default="acceleration")
     r.add_argument("--rate", type=float, default=50.0, help="agents' setpoint rate, Hz")
     r.add_argument("--base-port", type=int, default=None, help="first of 3N+1 UDP ports (default: free ones)")

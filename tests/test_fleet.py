@@ -352,6 +352,25 @@ def test_lockstep_runs_are_bit_identical(px4_run, tmp_path):
             assert json.dumps(px4_run.metrics.get(key)) == json.dumps(again.metrics.get(key)), key
 
 
+@pytest.mark.timeout(200)
+def test_signed_fleet_flies_the_same_run(px4_run, tmp_path):
+    """`swarmdrop run --signing`: every link signed (required) with a fresh owner-only key;
+    in lockstep the flight is bit-identical to the unsigned run, and nothing was dropped."""
+    signed = fly(tmp_path / "run", Path(px4_run.proc.args[4]), "--check", "--signing")
+    assert signed.proc.returncode == 0, signed.proc.stdout + signed.proc.stderr
+    key = tmp_path / "run" / "signing.key"
+    assert key.stat().st_mode & 0o077 == 0
+    for name in ("pos_ned_m", "att_q_wxyz", "acc_cmd_ned_mps2"):
+        assert px4_run.tel[name].tobytes() == signed.tel[name].tobytes(), name
+    sg = signed.metrics["fleet"]["signing"]
+    assert set(sg) == {"autopilot", "swarm"}
+    for link in sg.values():
+        assert link["unsigned"] == link["bad_signature"] == link["replayed"] == 0, sg
+    # what went over the wire was signed: every frame in the SITL's tlog carries a signature
+    frames = read_tlog(signed.out / "sitl.tlog", ["HEARTBEAT", "COMMAND_LONG", "SET_POSITION_TARGET_LOCAL_NED"])
+    assert frames and all(m.get_header().incompat_flags & 1 for m in frames)
+
+
 def _sim_s_reached(out: Path, sim_s: float) -> bool:
     """The SITL's last STATUS line (sitl.log) shows at least sim_s of simulated time."""
     try:

@@ -23,6 +23,7 @@ import socket
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
+from companion.link.signing import Signing
 from companion.link.tlog import Tlog
 from companion.link.wire import Codec, EncodeError, FrameError, FrameSplitter, UnknownMessage, split_datagram
 
@@ -104,6 +105,9 @@ class Link:
         """Send one frame (to addr, or the link's peer); False if it was dropped."""
         raise NotImplementedError
 
+    def note_peer(self, addr: Any) -> None:
+        """A frame from addr was accepted (datagram links may answer there from now on)."""
+
     def close(self) -> None:
         raise NotImplementedError
 
@@ -150,13 +154,18 @@ class UdpLink(Link):
             except OSError:  # e.g. ICMP port unreachable reported on a later call
                 continue
             self.bytes_in += len(data)
-            if self.learn_remote:
-                self.remote = addr
             frames, skipped = split_datagram(data)
             self.bytes_skipped += skipped
             self.frames_in += len(frames)
             out += [(f, addr) for f in frames]
         return out
+
+    def note_peer(self, addr: Any) -> None:
+        """A frame from addr was accepted (it decoded, and passed signing): with
+        learn_remote, answer there from now on. Only accepted frames move the peer, so junk
+        or an unsigned frame cannot redirect a vehicle's telemetry."""
+        if self.learn_remote and addr is not None:
+            self.remote = addr
 
     def send(self, frame: bytes, addr: Any = None) -> bool:
         dest = addr or self.remote
@@ -278,10 +287,12 @@ class MavEndpoint:
         sysid, compid: our ids for messages sent without explicit ids.
         tlog: log every frame sent and received (optional).
         outbox_max: messages held before the oldest is dropped.
+        signing: MAVLink 2 signing of this link (companion.link.signing); None = off.
     """
 
     def __init__(self, link: Link, codec: Codec, sysid: int, compid: int, tlog: Tlog | None = None,
-                 outbox_max: int = 4096):
+                 outbox_max: int = 4096, signing: Signing | None = None):
+        self.signing = signing if signing is not None and signing.active else None
         self.link = link
         self.codec = codec
         self.sysid = sysid
@@ -302,8 +313,10 @@ class MavEndpoint:
         """Pass every waiting frame and its source address to take, which decodes it and
         keeps the result; a frame take rejects is counted (unknown / bad) and dropped, a
         kept one goes to the tlog. Never raises on bad input."""
-        n, tlog = 0, self.tlog
-        for frame, addr in self.link.recv():
+        n, tlog, sg, link, last_addr = 0, self.tlog, self.signing, self.link, None
+        for frame, addr in link.recv():
+            if sg is not None and not sg.check(frame):
+                continue  # unsigned / forged / replayed: counted in sg.counters
             try:
                 take(frame, addr)
             except UnknownMessage:
@@ -314,6 +327,9 @@ class MavEndpoint:
                 continue
             if tlog is not None:
                 tlog.write(frame)
+            if addr != last_addr:
+                link.note_peer(addr)
+                last_addr = addr
             n += 1
         self.received += n
 
@@ -370,7 +386,7 @@ class MavEndpoint:
         as PX4 batches its UDP output: a receiver then wakes once for a tick's telemetry.
         Stream links get the same bytes in one write.
         """
-        out, link, codec, tlog, seqs = self._outbox, self.link, self.codec, self.tlog, self._seq
+        out, link, codec, tlog, seqs, sg = self._outbox, self.link, self.codec, self.tlog, self._seq, self.signing
         n = len(out) if budget is None else min(budget, len(out))
         sent = 0
         buf, buf_addr, buf_frames = b"", None, 0
@@ -387,6 +403,8 @@ class MavEndpoint:
                 self.unencodable += 1
                 continue
             seqs[key] = (seq + 1) & 0xFF
+            if sg is not None:
+                frame = sg.sign(frame)
             if tlog is not None:
                 tlog.write(frame)
             if buf and (addr != buf_addr or len(buf) + len(frame) > DATAGRAM_BYTES):
@@ -402,4 +420,6 @@ class MavEndpoint:
         return sent
 
     def close(self) -> None:
+        if self.signing is not None:
+            self.signing.close()
         self.link.close()

@@ -50,6 +50,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--log-level", default="INFO", choices=("DEBUG", "INFO", "WARNING", "ERROR"))
     p.add_argument("--log-file", default=None, help="also log to this file")
     p.add_argument("--no-stderr-log", action="store_true", help="log only to --log-file")
+    p.add_argument("--signing", choices=("off", "optional", "require"), default="off",
+                   help="MAVLink 2 signing on the autopilot and swarm links (docs/signing.md)")
+    p.add_argument("--signing-key", default=None, metavar="FILE",
+                   help="the 32-byte signing key (64 hex digits) in a file only its owner can read")
     p.add_argument("--stats", default=None, help="write statistics (latency, CPU, link counters) to this JSON")
 
 
@@ -87,6 +91,7 @@ def _logging(args) -> None:
 
 def run(args) -> int:
     from companion.node.config import NodeConfig, check_node, load_mission_file
+    from companion.link.signing import SigningError
     from companion.node.runner import AgentNode, ExitCode
 
     _logging(args)
@@ -100,10 +105,11 @@ def run(args) -> int:
             rate_hz=args.rate, plan_every=args.plan_every, launch=args.launch or mf.mission.launch,
             takeoff_alt_m=args.takeoff_alt if args.takeoff_alt is not None else mf.mission.takeoff_alt_m,
             lockstep=args.lockstep, setup_timeout_s=args.setup_timeout,
-            stats_path=Path(args.stats) if args.stats else None))
+            stats_path=Path(args.stats) if args.stats else None, signing=args.signing,
+            signing_key_file=Path(args.signing_key) if args.signing_key else None))
         node = AgentNode(cfg)
         node.startup_s = process_age_s()
-    except (ConfigError, EndpointError) as err:
+    except (ConfigError, EndpointError, SigningError) as err:
         log.error("%s", err)
         return int(ExitCode.CONFIG)
     except OSError as err:

@@ -87,6 +87,10 @@ class NodeConfig:
     heartbeat_timeout_s: float = 5.0
     setup_timeout_s: float = 120.0
     stats_path: Path | None = None
+    signing: Literal["off", "optional", "require"] = "off"
+    """MAVLink 2 signing on the autopilot link and the swarm link (docs/signing.md)."""
+    signing_key_file: Path | None = None
+    """The 32-byte key file (owner-readable only); its last timestamps go to KEY.timestamp-SYSID."""
 
     @property
     def own_sysid(self) -> int:

@@ -35,6 +35,7 @@ from companion.link.endpoints import MavEndpoint, UdpLink, open_link
 from companion.link.msgdef import swarmdrop as md
 from companion.link.limits import SetpointLimits, clamp_tilt, clamp_velocity, fence_trajectory
 from companion.link.setpoints import attitude_target_fields, position_target_fields
+from companion.link.signing import Signing, SigningError, TimestampStore, load_key
 from companion.link.wire import Codec
 from companion.mission import Mission
 from companion.node.config import NodeConfig
@@ -121,11 +122,14 @@ class AgentNode:
         self.mission = Mission(mcfg)
         self.agent = Agent(self.mission, np.array([cfg.vehicle_id]))
         self.codec = Codec(md)
+        self._sign_store: TimestampStore | None = None
+        self._sign_key = b""
         sysid = cfg.own_sysid
+        ap_sign, sw_sign = self._signing(0), self._signing(1)
         self.ap_ep = MavEndpoint(open_link(cfg.autopilot_url, self.codec.crc_extra), self.codec, sysid,
-                                 MAV_COMP_ID_ONBOARD_COMPUTER)
+                                 MAV_COMP_ID_ONBOARD_COMPUTER, signing=ap_sign)
         self.sw_ep = MavEndpoint(UdpLink(bind=cfg.swarm_bind, remote=None, learn_remote=False), self.codec, sysid,
-                                 MAV_COMP_ID_ONBOARD_COMPUTER)
+                                 MAV_COMP_ID_ONBOARD_COMPUTER, signing=sw_sign)
         self.vehicle = VehicleLink(self.ap_ep, cfg.target_sysid, mcfg.origin)
         self.view = view_for(self.mission.n)
         self.swarm = SwarmLink(self.sw_ep, cfg.vehicle_id, cfg.swarm_peers, self.view)
@@ -521,6 +525,20 @@ class AgentNode:
             self._loop.call_soon_threadsafe(self._stop.set)
 
     # ------------------------------------------------------------------ statistics
+    def _signing(self, link_id: int) -> Signing | None:
+        """Signing of one of our links (0 autopilot, 1 swarm). Raises SigningError (a
+        ConfigError for the CLI) on a missing or unsafe key file."""
+        cfg = self.cfg
+        if cfg.signing == "off":
+            return None
+        if cfg.signing_key_file is None:
+            raise SigningError(f"signing {cfg.signing!r} needs --signing-key FILE")
+        if self._sign_store is None:
+            self._sign_key = load_key(cfg.signing_key_file)
+            self._sign_store = TimestampStore(f"{cfg.signing_key_file}.timestamp-{cfg.own_sysid}")
+        return Signing(cfg.signing, self._sign_key, link_id=link_id, store=self._sign_store,
+                       crc_extra=self.codec.crc_extra)
+
     def stats(self) -> dict:
         lat = np.array(self.latency_s) * 1e3 if self.latency_s else np.zeros(0)
         wall = time.monotonic() - self.start_wall
@@ -544,6 +562,8 @@ class AgentNode:
                           "foreign": v.foreign, "dropped_nonfinite": v.dropped_nonfinite,
                           "bytes_in": self.ap_ep.link.bytes_in, "bytes_out": self.ap_ep.link.bytes_out},
             "swarm": self.swarm.counters(),
+            "signing": {name: dataclasses.asdict(ep.signing.counters) for name, ep in
+                        (("autopilot", self.ap_ep), ("swarm", self.sw_ep)) if ep.signing is not None},
         }
 
     def write_stats(self) -> None:

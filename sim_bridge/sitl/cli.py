@@ -17,6 +17,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--lockstep", action="store_true", help="simulation time waits for the companions")
     p.add_argument("--tlog", default=None, help="write every frame sent and received to this .tlog")
     p.add_argument("--seed", type=int, default=None)
+    p.add_argument("--signing", choices=("off", "optional", "require"), default=None,
+                   help="MAVLink 2 signing on every endpoint (default off; docs/signing.md)")
+    p.add_argument("--signing-key", default=None, metavar="FILE",
+                   help="the 32-byte signing key (64 hex digits), a file only its owner can read")
     p.add_argument("--remote-base-port", type=int, default=None, help="vehicle k sends to this + k")
     p.add_argument("--local-base-port", type=int, default=None, help="vehicle k listens on this + k")
     p.add_argument("--gcs", action="store_true", help="enable the shared GCS endpoint")
@@ -99,7 +103,9 @@ def config_from_args(args):
     cfg = dataclasses.replace(
         cfg, vehicles=_pick(args.vehicles, cfg.vehicles), dialect=_pick(args.dialect, cfg.dialect),
         seed=_pick(args.seed, cfg.seed), time=time_cfg, endpoints=ep, spawn=spawn, medium=medium,
-        tlog_path=_pick(args.tlog, cfg.tlog_path))
+        tlog_path=_pick(args.tlog, cfg.tlog_path),
+        signing=dataclasses.replace(cfg.signing, mode=_pick(getattr(args, "signing", None), cfg.signing.mode),
+                                    key_file=_pick(getattr(args, "signing_key", None), cfg.signing.key_file)))
     return cfg, scenario
 
 

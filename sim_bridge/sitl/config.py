@@ -107,6 +107,17 @@ class MediumConfig:
 
 
 @dataclass(config=STRICT)
+class SigningConfig:
+    """MAVLink 2 signing on every vehicle endpoint and the GCS endpoint (docs/signing.md)."""
+
+    mode: Literal["off", "optional", "require"] = "off"
+    key_file: str | None = None
+    """32-byte key (64 hex digits), readable by its owner only; needed unless mode is off."""
+    timestamp_file: str | None = None
+    """Keeps the last signing timestamp across restarts (default: KEY_FILE.timestamp)."""
+
+
+@dataclass(config=STRICT)
 class SitlConfig:
     vehicles: int = Field(1, ge=1, le=250)
     dialect: Literal["px4", "ardupilot"] = "px4"
@@ -125,6 +136,7 @@ class SitlConfig:
     """Parameter overrides applied to every vehicle at start (name -> value)."""
     tlog_path: str | None = None
     medium: MediumConfig = MediumConfig()
+    signing: SigningConfig = SigningConfig()
 
 
 def load_config(path: str | Path | None, **overrides) -> SitlConfig:

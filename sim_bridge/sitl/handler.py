@@ -14,6 +14,7 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
 from companion.link.limits import INVALID_SETPOINTS, check_attitude, check_trajectory  # noqa: E402
 from companion.link.params import param_name  # noqa: E402
+from companion.link.wire import signature_of  # noqa: E402
 from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target  # noqa: E402
 from sim_bridge.sitl.autopilot import (  # noqa: E402
     ACCEPTED, DENIED, SEV_CRITICAL, TEMPORARILY_REJECTED, UNSUPPORTED, Autopilot,
@@ -84,7 +85,10 @@ class MessageRouter:
             "FILE_TRANSFER_PROTOCOL": self._ftp,
             "SET_GPS_GLOBAL_ORIGIN": self._set_origin,
             "SWARMDROP_TICK": self._companion_tick,
+            "SETUP_SIGNING": self._setup_signing,
         }
+        self.setup_signing_refused = 0
+        """SETUP_SIGNING messages ignored because they did not arrive signed with the current key."""
 
     def targets(self, msg, vehicle: int | None) -> list[int]:
         """Vehicle indices a message is for: its own vehicle on a per-vehicle link,
@@ -221,6 +225,19 @@ class MessageRouter:
         self._last_reject.pop(k, None)
         ap.on_offboard_setpoint(sp, self.ctx.sim_s)
         self.ctx.on_setpoint(k)
+
+    def _setup_signing(self, k, msg, endpoint, addr) -> None:
+        """A new key, accepted only over an already trusted link: signing is on for this
+        endpoint and the message itself was signed with the current key (checked on receipt).
+        Without that, anyone on the link could install their own key."""
+        sg = getattr(endpoint, "signing", None)
+        if sg is None or signature_of(msg) is None:
+            self.setup_signing_refused += 1
+            if self._last_reject.get(k) != "SETUP_SIGNING refused":
+                self._last_reject[k] = "SETUP_SIGNING refused"
+                self.ctx.autopilots[k].events.append((SEV_CRITICAL, "SETUP_SIGNING refused: link not trusted"))
+            return
+        sg.set_key(bytes(msg.secret_key))
 
     def _companion_tick(self, k, msg, endpoint, addr) -> None:
         self.ctx.on_companion_tick(k, msg.time_usec)

@@ -44,7 +44,10 @@ class Medium:
     """
 
     def __init__(self, n: int, link: LinkConfig, seed: int, epoch_unix_s: float, bind: tuple[str, int],
-                 agent_ports: list[int] | None = None, host: str = "127.0.0.1"):
+                 agent_ports: list[int] | None = None, host: str = "127.0.0.1", signing=None):
+        self.signing = signing
+        """Signs the radio's own end-of-tick marker when the fleet is signed (agents'
+        states are forwarded as they were sent, signatures and all)."""
         self.n = n
         self.radio = RadioModel(link, seed)
         self.epoch_unix_s = epoch_unix_s
@@ -158,6 +161,8 @@ class Medium:
         if tick_marker:
             marker = self.codec.encode_fields(sd.MAVLINK_MSG_ID_SWARMDROP_TICK,
                                               [int(round((self.epoch_unix_s + sim_s) * 1e6))], 255, 0, 0)
+            if self.signing is not None:
+                marker = self.signing.sign(marker)
             for k in np.flatnonzero(receivers).tolist():
                 batches.setdefault(k, []).append(marker)
         for k, frames in batches.items():

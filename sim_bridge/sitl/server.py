@@ -15,6 +15,7 @@ and flushes replies; telemetry is flushed once per tick.
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import json
 import math
 import os
@@ -33,6 +34,7 @@ from companion.control.geometric import max_thrust_n  # noqa: E402
 from companion.frames import geodetic_to_ned, integrate_quat_body_rates  # noqa: E402
 from companion.link.dialects import Mode, dialect_named  # noqa: E402
 from companion.link.endpoints import MavEndpoint, UdpLink  # noqa: E402
+from companion.link.signing import Signing, SigningError, TimestampStore, load_key  # noqa: E402
 from companion.link.msgdef import swarmdrop  # noqa: E402
 from companion.link.tlog import Tlog  # noqa: E402
 from companion.link.wire import Codec  # noqa: E402
@@ -184,6 +186,12 @@ class SitlServer:
             self.tracker = MissionTracker(scenario, Mission(scenario.mission), log_every)
         self.mission_done = False
         self._link_at_done: dict | None = None
+        self._sign_store: TimestampStore | None = None
+        self._sign_key = b""
+        if cfg.signing.mode != "off":  # a bad key is a configuration error, before any port opens
+            if not cfg.signing.key_file:
+                raise SigningError(f"signing {cfg.signing.mode!r} needs a key file (--signing-key FILE)")
+            self._sign_key = load_key(cfg.signing.key_file)
         """The radio's counters when the mission completed: states still in flight while the
         processes stop depend on the wall clock, and a lockstep run must report the same figures."""
         self._stop_when_done = False
@@ -467,19 +475,38 @@ class SitlServer:
         for k in range(self.n):
             local = ec.local_base_port + k if ec.local_base_port else 0
             link = UdpLink(bind=(ec.bind_host, local), remote=(ec.remote_host, ec.vehicle_remote_port(k)))
-            ep = MavEndpoint(link, self.codec, k + 1, 1, self.tlog)
+            ep = MavEndpoint(link, self.codec, k + 1, 1, self.tlog, signing=self._signing(k))
             self.endpoints.append(ep)
             self._loop.add_reader(link.fileno(), self._on_readable, ep, k)
         if ec.gcs_enabled:
             link = UdpLink(bind=(ec.bind_host, ec.gcs_local_port), remote=(ec.remote_host, ec.gcs_remote_port))
-            self.gcs = MavEndpoint(link, self.codec, 1, 1, self.tlog)
+            self.gcs = MavEndpoint(link, self.codec, 1, 1, self.tlog, signing=self._signing(self.n))
             self._loop.add_reader(link.fileno(), self._on_readable, self.gcs, None)
         mc = self.cfg.medium
         if mc.enabled:
             ports = [mc.agent_base_port + k for k in range(self.n)] if mc.agent_base_port else None
             self.medium = Medium(self.n, mc.link, self.cfg.seed, self.telemetry.epoch_unix_s,
-                                 (ec.bind_host, mc.port), ports, ec.remote_host)
+                                 (ec.bind_host, mc.port), ports, ec.remote_host, signing=self._signing(200))
             self._loop.add_reader(self.medium.fileno(), self._on_medium)
+
+    def _signing(self, link_id: int) -> Signing | None:
+        """The signing layer of one endpoint (its own replay table; link id = vehicle index,
+        n for the GCS endpoint); one timestamp file for the process."""
+        sc = self.cfg.signing
+        if sc.mode == "off":
+            return None
+        if self._sign_store is None:
+            self._sign_store = TimestampStore(sc.timestamp_file or f"{sc.key_file}.timestamp")
+        return Signing(sc.mode, self._sign_key, link_id=link_id & 0xFF, store=self._sign_store,
+                       crc_extra=self.codec.crc_extra)
+
+    def signing_stats(self) -> dict:
+        """Per endpoint (vehicle index, or "gcs"): what signing dropped."""
+        out = {}
+        for name, ep in [(str(k), e) for k, e in enumerate(self.endpoints)] + ([("gcs", self.gcs)] if self.gcs else []):
+            if ep.signing is not None:
+                out[name] = dataclasses.asdict(ep.signing.counters)
+        return out
 
     def _on_readable(self, ep: MavEndpoint, k: int | None) -> None:
         for msg, addr in ep.poll():
