@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo demo-headless test bench clean
+.PHONY: demo demo-headless test bench fuzz clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -21,11 +21,15 @@ demo-headless: $(STAMP)
 	$(BIN)/swarmdrop simulate configs/paper_40.yaml --out runs/paper_40_headless
 
 test: $(STAMP)
+	$(BIN)/ruff check .
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)
 	$(BIN)/python -m compileall -q companion sim_bridge swarmdrop
 	$(BIN)/python -m bench.run
+
+fuzz: $(STAMP)
+	$(BIN)/python -m sim_bridge.fuzz --frames 1000000 --out runs/fuzz --json bench/results/fuzz.json
 
 clean:
 	rm -rf runs bench/results/*.json

@@ -59,6 +59,47 @@ def paper_40(tmp: Path) -> dict:
     return {"config": "configs/paper_40.yaml", "wall_s": time.perf_counter() - t0, **figures}
 
 
+def _per_frame_us() -> dict:
+    """Signing and checking one SET_POSITION_TARGET_LOCAL_NED frame, µs (CPython, this machine)."""
+    import os
+
+    os.environ.setdefault("MAVLINK20", "1")
+    from pymavlink.dialects.v20 import common as mavlink
+
+    from companion.link.signing import Signing
+    from companion.link.wire import Codec
+
+    codec = Codec(mavlink)
+    tx = Signing("require", bytes(32), crc_extra=codec.crc_extra)
+    rx = Signing("require", bytes(32), crc_extra=codec.crc_extra)
+    frame = codec.encode(mavlink.MAVLink_set_position_target_local_ned_message(
+        0, 1, 1, 1, 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 0, 0), 2, 191, 0)
+    n = 20000
+    t0 = time.perf_counter()
+    signed = [tx.sign(frame) for _ in range(n)]
+    t1 = time.perf_counter()
+    ok = sum(rx.check(f) for f in signed)
+    t2 = time.perf_counter()
+    assert ok == n
+    return {"sign_us": (t1 - t0) / n * 1e6, "check_us": (t2 - t1) / n * 1e6, "bytes_added": 13}
+
+
+def signing(tmp: Path) -> dict:
+    """paper_40 in real time unsigned and with `--signing` (required on every link), back to back:
+    the same checks must pass, and the difference in agent and SITL CPU is signing's cost."""
+    plain = fleet(PAPER, tmp / "plain")
+    signed = fleet(PAPER, tmp / "signed", signing=True)
+    cpu = lambda r: r["agent_cpu_fraction_of_core"]["mean"]  # noqa: E731
+    return {
+        "config": "configs/paper_40.yaml", "per_frame": _per_frame_us(),
+        "unsigned": plain, "signed": signed,
+        "same_checks": plain["checks"] == signed["checks"],
+        "agent_cpu_added_fraction_of_core": (cpu(signed) - cpu(plain)) if cpu(signed) and cpu(plain) else None,
+        "sitl_cpu_added_fraction_of_core": (signed["sitl_cpu_fraction_of_core"] - plain["sitl_cpu_fraction_of_core"])
+        if signed["sitl_cpu_fraction_of_core"] and plain["sitl_cpu_fraction_of_core"] else None,
+    }
+
+
 def capacity(tmp: Path, sizes=(40, 60, 80, 100), sim_s: float = 30.0) -> dict:
     base = yaml.safe_load(PAPER.read_text())
     rows = []
@@ -121,13 +162,9 @@ def agent_startup(tmp: Path) -> dict:
                 "note": "startup = process start to a constructed node (imports, mission file, sockets); "
                         "setup = then to flying (streams, clock, EKF origin, parameters)"}
     finally:
-        for p in (agent, sitl):
-            if p is not None and p.poll() is None:
-                p.terminate()
-                try:
-                    p.wait(10)
-                except subprocess.TimeoutExpired:
-                    p.kill()
+        from sim_bridge.fleet import terminate_all
+
+        terminate_all((agent, sitl))
 
 
 def run(capacity_sizes=(40, 60, 80, 100)) -> dict:

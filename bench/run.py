@@ -5,7 +5,9 @@
 - sitl.json: the MAVLink SITL alone at N = 40, 100, 250;
 - wire.json: the lean MAVLink codec against pymavlink (µs per message);
 - fleet.json: `swarmdrop run` (SITL + one agent process per vehicle) on paper_40 in real
-  time, the largest fleet that keeps real time, and one agent's start-up time and PSS.
+  time, the largest fleet that keeps real time, and one agent's start-up time and PSS;
+- signing.json: paper_40 unsigned and with `--signing`, back to back (the CPU signing costs),
+  and µs to sign and check one frame.
 
 `python -m bench.run NAME ...` runs only the named parts.
 """
@@ -65,7 +67,7 @@ def load_scenario_small(cfg):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parts = set(sys.argv[1:] if argv is None else argv) or {"physics", "paper_40", "sitl", "wire", "fleet"}
+    parts = set(sys.argv[1:] if argv is None else argv) or {"physics", "paper_40", "sitl", "wire", "fleet", "signing"}
     if "physics" in parts:
         from bench.bench_physics import run as run_physics
 
@@ -84,6 +86,14 @@ def main(argv: list[str] | None = None) -> int:
         from bench.bench_fleet import run as run_fleet
 
         _write("fleet", run_fleet())
+    if "signing" in parts:
+        import tempfile
+
+        from bench.bench_fleet import signing
+
+        with tempfile.TemporaryDirectory(prefix="swarmdrop-bench-") as d:
+            _write("signing", {"name": "signing", "description": "paper_40 fleet, unsigned vs --signing",
+                               **signing(Path(d))})
     return 0
 
 

@@ -15,7 +15,6 @@ from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT
-
 from companion.control import topology
 from companion.control.formation import ConsensusGains, check_stability
 

@@ -13,7 +13,6 @@ from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT
 
-
 GRAVITY_MPS2 = 9.80665
 
 

@@ -15,8 +15,8 @@ import numpy as np  # noqa: E402
 
 from companion import frames  # noqa: E402
 from companion.agent import Phase  # noqa: E402
-from sim_bridge.record import RunResult  # noqa: E402
 from sim_bridge.metrics import formation_deviation  # noqa: E402
+from sim_bridge.record import RunResult  # noqa: E402
 
 
 def _sphere(ax, centre_ned, radius, color="hotpink", alpha=0.35):

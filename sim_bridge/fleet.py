@@ -204,6 +204,21 @@ def _tail(path: Path, lines: int = 12) -> str:
         return "(no log)"
 
 
+def terminate_all(procs, grace_s: float = 10.0) -> None:
+    """SIGTERM every live process, then SIGKILL what has not exited after grace_s (no orphans)."""
+    procs = [p for p in procs if p is not None]
+    for p in procs:
+        if p.poll() is None:
+            p.terminate()
+    deadline = time.monotonic() + grace_s
+    for p in procs:
+        try:
+            p.wait(max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+
+
 class Fleet:
     """One fleet run: start, watch, stop, report."""
 
@@ -242,7 +257,8 @@ class Fleet:
         o = self.opts
         args = [o.python, "-m", "sim_bridge.sitl", "--scenario", str(self.config_path), "--dialect", o.dialect,
                 "--remote-base-port", str(ports.agents[0]), "--local-base-port", str(ports.sitl),
-                "--medium-port", str(ports.medium), "--agent-base-port", str(ports.agent_swarm), "--start-when-attached", str(self.n), "--status",
+                "--medium-port", str(ports.medium), "--agent-base-port", str(ports.agent_swarm),
+                "--start-when-attached", str(self.n), "--status",
                 "--record", str(self.out), "--tlog", str(self.out / "sitl.tlog"), "--stop-when-done",
                 "--duration", str(self.cfg.duration_s), "--epoch", str(EPOCH_UNIX_S)]
         if o.lockstep:
@@ -301,17 +317,7 @@ class Fleet:
 
     def stop(self) -> None:
         """Stop every process: SIGTERM, then SIGKILL after a grace period (no orphans)."""
-        procs = [p for p in self.agents + [self.sitl] if p is not None]
-        for p in procs:
-            if p.poll() is None:
-                p.send_signal(signal.SIGTERM)
-        deadline = time.monotonic() + STOP_GRACE_S
-        for p in procs:
-            try:
-                p.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                p.kill()
-                p.wait()
+        terminate_all(self.agents + [self.sitl], STOP_GRACE_S)
 
     # ------------------------------------------------------------------ the run
     def _cpu_share(self, key: int | str, pid: int) -> float | None:

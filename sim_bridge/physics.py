@@ -15,7 +15,6 @@ from pydantic import Field
 from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT
-
 from companion.control import geometric, pid, so3
 from companion.control.geometric import pack_control_params, pack_setpoint
 from companion.params import GRAVITY_MPS2, InnerLoopConfig, VehicleParams

@@ -5,7 +5,6 @@ from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT
-
 from companion.mission import MissionConfig
 from companion.params import InnerLoopConfig, VehicleParams
 from sim_bridge.carrier import CarrierConfig

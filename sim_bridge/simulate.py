@@ -8,9 +8,9 @@ from pathlib import Path
 from companion.config import load_yaml
 from sim_bridge.figures import write_figures
 from sim_bridge.headless import run_scenario
-from sim_bridge.record import save_log
 from sim_bridge.launch_study import run_launch_study
 from sim_bridge.metrics import compute_metrics
+from sim_bridge.record import save_log
 from sim_bridge.scenario import ScenarioConfig
 
 

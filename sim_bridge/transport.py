@@ -12,8 +12,6 @@ run and a SITL run with one seed lose the same messages.
 """
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from pydantic import Field
 from pydantic.dataclasses import dataclass

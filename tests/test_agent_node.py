@@ -6,7 +6,6 @@ import json
 import os
 import select
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -25,8 +24,8 @@ from companion.link.endpoints import MavEndpoint, UdpLink  # noqa: E402
 from companion.link.msgdef import swarmdrop as md  # noqa: E402
 from companion.link.wire import Codec  # noqa: E402
 from companion.mission import formation_offsets_ned_m  # noqa: E402
-from companion.node.swarmlink import SwarmLink, view_for  # noqa: E402
 from companion.node.config import load_mission_file  # noqa: E402
+from companion.node.swarmlink import SwarmLink, view_for  # noqa: E402
 from sim_bridge.sitl.testing import free_udp_base_port  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
+from companion.control.geometric import max_thrust_n
 from companion.frames import euler_zyx_to_rot, yaw_rad
 from companion.params import GRAVITY_MPS2, InnerLoopConfig, VehicleParams
 from companion.state import FleetSetpoint, FleetState
-from companion.control.geometric import max_thrust_n
 from sim_bridge.dynamics import allocate_np, inverse_mixer_np, mixer_np, step_open_loop
 from sim_bridge.physics import Physics, WindConfig, hover_rotor_speed_radps, hover_state
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 import os
-import socket
 import time
 
 import numpy as np
@@ -211,8 +210,8 @@ def test_partial_nan_position_is_invalid_and_stops_the_vehicle():
 
 def test_unknown_incompat_flags_are_dropped():
     """The reference C parser drops frames with incompat flags other than signing (0x01)."""
-    from companion.link.wire import Codec, FrameError
     from companion.link.msgdef import swarmdrop
+    from companion.link.wire import Codec, FrameError
 
     codec = Codec(mavlink, swarmdrop)
     good = bytearray(_frame(mavlink.MAVLink_heartbeat_message(2, 12, 0, 0, 0, 3)))
@@ -251,11 +250,12 @@ def test_fence_keeps_setpoints_inside_and_stops_outward_motion():
 
 
 def test_geofence_config_is_validated():
-    from companion.config import ConfigError
-    from companion.node.config import load_mission_file
+    from pathlib import Path
+
     import yaml
 
-    from pathlib import Path
+    from companion.config import ConfigError
+    from companion.node.config import load_mission_file
     root = Path(__file__).resolve().parents[1]
     data = yaml.safe_load((root / "configs" / "small_6.yaml").read_text())
     data["mission"]["geofence"] = {"min_ned_m": [0, 0, 0], "max_ned_m": [10, -5, 1]}

@@ -19,9 +19,21 @@ from pymavlink.generator.mavcrc import x25crc_slow
 from companion.link import wire
 from companion.link.msgdef import generate
 from companion.link.msgdef import swarmdrop as sd
-from companion.link.wire import (BadCrc, BadLength, BadMagic, Codec, EncodeError, FrameError, FrameSplitter,
-                                 TruncatedFrame, UnknownMessage, UnsupportedIncompatFlags, crc16_x25,
-                                 crc16_x25_hqx, signature_of, split_datagram)
+from companion.link.wire import (
+    BadCrc,
+    BadLength,
+    BadMagic,
+    Codec,
+    EncodeError,
+    FrameError,
+    FrameSplitter,
+    TruncatedFrame,
+    UnknownMessage,
+    UnsupportedIncompatFlags,
+    crc16_x25,
+    crc16_x25_hqx,
+    signature_of,
+)
 
 INT_RANGES = {"int8_t": (-128, 127), "uint8_t": (0, 255), "int16_t": (-2**15, 2**15 - 1),
               "uint16_t": (0, 2**16 - 1), "int32_t": (-2**31, 2**31 - 1), "uint32_t": (0, 2**32 - 1),

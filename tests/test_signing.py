@@ -21,9 +21,9 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
+from companion.link.msgdef import swarmdrop  # noqa: E402
 from companion.link.signing import Signing, SigningError, TimestampStore, load_key, write_key  # noqa: E402
 from companion.link.wire import Codec  # noqa: E402
-from companion.link.msgdef import swarmdrop  # noqa: E402
 from sim_bridge.sitl.config import SigningConfig, SitlConfig  # noqa: E402
 from sim_bridge.sitl.server import BackgroundSitl, SitlServer  # noqa: E402
 from sim_bridge.sitl.testing import MavClient, local_endpoints  # noqa: E402

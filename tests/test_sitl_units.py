@@ -7,13 +7,18 @@ import struct
 import numpy as np
 import pytest
 
+from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target
 from companion.params import InnerLoopConfig
 from sim_bridge.carrier import AttitudeDistribution, CarrierConfig
 from sim_bridge.sitl.autopilot import ACCEPTED, TEMPORARILY_REJECTED, Mode
 from sim_bridge.sitl.config import SitlConfig, SpawnConfig
-from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target
 from sim_bridge.sitl.params_table import (
-    MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, ParamTable, decode_param_value, default_specs, encode_param_value,
+    MAV_PARAM_TYPE_INT32,
+    MAV_PARAM_TYPE_REAL32,
+    ParamTable,
+    decode_param_value,
+    default_specs,
+    encode_param_value,
 )
 from sim_bridge.sitl.server import SitlServer
 

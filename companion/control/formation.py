@@ -30,7 +30,6 @@ from pydantic import Field
 from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT
-
 from companion.control import topology as _topo
 from companion.control.kernel import kernel
 

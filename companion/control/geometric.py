@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
 from companion.control.kernel import kernel
 from companion.control.so3 import cross, load_mat, mattmul, mattvec, mul, norm, scale, sub
 from companion.params import GRAVITY_MPS2, GeometricGains, PIDGains, VehicleParams

@@ -25,13 +25,31 @@ from __future__ import annotations
 import math
 
 import numpy as np
+
+from companion.control.geometric import (
+    CP_FMAX,
+    CP_G,
+    CP_JXX,
+    CP_JYY,
+    CP_JZZ,
+    CP_KOM,
+    CP_KR,
+    CP_KV,
+    CP_KX,
+    CP_P_ATT,
+    CP_P_VEL,
+    SP_ACC,
+    SP_POS,
+    SP_Q,
+    SP_VEL,
+    attitude_mode_target,
+    pack_control_params,
+    pack_setpoint,
+    thrust_vector,
+    yaw_target,
+)
 from companion.control.kernel import kernel
 from companion.control.so3 import load_mat, norm
-from companion.control.geometric import (
-    CP_FMAX, CP_G, CP_JXX, CP_JYY, CP_JZZ, CP_KOM, CP_KR, CP_KV, CP_KX, CP_P_ATT, CP_P_VEL,
-    SP_ACC, SP_POS, SP_Q, SP_VEL, attitude_mode_target, pack_control_params, pack_setpoint,
-    thrust_vector, yaw_target,
-)
 from companion.params import GeometricGains, PIDGains, VehicleParams
 from companion.state import FleetSetpoint, FleetState
 

@@ -5,14 +5,14 @@ offboard path and position controller would; the agent applies the same function
 to what it sends, so it never commands a non-finite or out-of-limit setpoint. The
 rules, one table (docs/setpoint-hygiene.md):
 
-| input | rule |
-|---|---|
-| position / velocity / acceleration | x, y count in pairs; every axis group (xy, z) needs a finite source, else "invalid setpoints" (PX4 FlightTaskOffboard / PositionControl) |
-| velocity | xy norm <= MPC_XY_VEL_MAX; down <= MPC_Z_VEL_MAX_DN, up <= MPC_Z_VEL_MAX_UP |
-| yaw rate | abs <= MC_YAWRATE_MAX; a non-finite yaw or yaw rate is "not commanded" |
-| thrust | non-finite: rejected; clamped to [MPC_THR_MIN, MPC_THR_MAX] |
-| body rates | non-finite: rejected; each clamped to MC_ROLLRATE_MAX / MC_PITCHRATE_MAX / MC_YAWRATE_MAX |
-| attitude | tilt clamped to MPC_TILTMAX_AIR, heading kept |
+- position / velocity / acceleration: x, y count in pairs; the xy pair and z each need a
+  finite source, else "invalid setpoints" (PX4's offboard flight task / position control);
+- velocity: horizontal norm <= MPC_XY_VEL_MAX, up <= MPC_Z_VEL_MAX_UP, down <= MPC_Z_VEL_MAX_DN;
+- yaw rate: abs <= MC_YAWRATE_MAX; a non-finite yaw or yaw rate is "not commanded";
+- thrust: non-finite is rejected; clamped to [MPC_THR_MIN, MPC_THR_MAX];
+- body rates: non-finite is rejected; each clamped to MC_ROLLRATE_MAX / MC_PITCHRATE_MAX /
+  MC_YAWRATE_MAX;
+- attitude: tilt clamped to MPC_TILTMAX_AIR, heading kept.
 
 Pure functions over small numpy arrays; no I/O.
 """

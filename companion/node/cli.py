@@ -90,8 +90,8 @@ def _logging(args) -> None:
 
 
 def run(args) -> int:
-    from companion.node.config import NodeConfig, check_node, load_mission_file
     from companion.link.signing import SigningError
+    from companion.node.config import NodeConfig, check_node, load_mission_file
     from companion.node.runner import AgentNode, ExitCode
 
     _logging(args)

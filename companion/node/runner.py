@@ -32,8 +32,8 @@ from companion.control.geometric import pack_control_params, position_law, quat_
 from companion.frames import rot_to_quat_wxyz
 from companion.link.dialects import Mode
 from companion.link.endpoints import MavEndpoint, UdpLink, open_link
-from companion.link.msgdef import swarmdrop as md
 from companion.link.limits import SetpointLimits, clamp_tilt, clamp_velocity, fence_trajectory
+from companion.link.msgdef import swarmdrop as md
 from companion.link.setpoints import attitude_target_fields, position_target_fields
 from companion.link.signing import Signing, SigningError, TimestampStore, load_key
 from companion.link.wire import Codec

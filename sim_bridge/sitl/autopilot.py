@@ -23,9 +23,17 @@ import numpy as np
 
 from companion.frames import rot_to_quat_wxyz
 from companion.link.dialects import AutopilotDialect, Mode
-from companion.link.dialects.base import (LANDED_IN_AIR, LANDED_LANDING, LANDED_ON_GROUND, LANDED_TAKEOFF, STATE_ACTIVE,
-                                          STATE_CRITICAL, STATE_FLIGHT_TERMINATION, STATE_STANDBY)
 from companion.link.dialects.ardupilot import ANGLE_BOOST_COS_MIN, BRAKE, GUIDED, LAND, LOITER, THROW
+from companion.link.dialects.base import (
+    LANDED_IN_AIR,
+    LANDED_LANDING,
+    LANDED_ON_GROUND,
+    LANDED_TAKEOFF,
+    STATE_ACTIVE,
+    STATE_CRITICAL,
+    STATE_FLIGHT_TERMINATION,
+    STATE_STANDBY,
+)
 from companion.link.setpoints import AttitudeSetpoint, TrajectorySetpoint
 from companion.params import GRAVITY_MPS2
 from companion.state import FleetSetpoint, FleetState

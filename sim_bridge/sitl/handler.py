@@ -14,14 +14,22 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
 from companion.link.limits import INVALID_SETPOINTS, check_attitude, check_trajectory  # noqa: E402
 from companion.link.params import param_name  # noqa: E402
-from companion.link.wire import signature_of  # noqa: E402
 from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target  # noqa: E402
+from companion.link.wire import signature_of  # noqa: E402
 from sim_bridge.sitl.autopilot import (  # noqa: E402
-    ACCEPTED, DENIED, SEV_CRITICAL, TEMPORARILY_REJECTED, UNSUPPORTED, Autopilot,
+    ACCEPTED,
+    DENIED,
+    SEV_CRITICAL,
+    TEMPORARILY_REJECTED,
+    UNSUPPORTED,
+    Autopilot,
 )
 from sim_bridge.sitl.params_table import ParamTable  # noqa: E402
 from sim_bridge.sitl.telemetry import (  # noqa: E402
-    HEARTBEAT, REQUESTABLE, STREAMS, TelemetryBuilder,
+    HEARTBEAT,
+    REQUESTABLE,
+    STREAMS,
+    TelemetryBuilder,
 )
 
 CMD_NAV_LAND = 21

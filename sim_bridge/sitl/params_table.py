@@ -17,7 +17,12 @@ from companion.link.dialects import AutopilotDialect
 from companion.link.dialects.ardupilot import GUID_OPTIONS_THRUST
 from companion.link.limits import SetpointLimits
 from companion.link.params import (
-    INT_FORMATS, MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, Encoding, decode_param_value, encode_param_value,
+    INT_FORMATS,
+    MAV_PARAM_TYPE_INT32,
+    MAV_PARAM_TYPE_REAL32,
+    Encoding,
+    decode_param_value,
+    encode_param_value,
 )
 from companion.params import GeometricGains, InnerLoopConfig
 from sim_bridge.autopilot_model import THROW_RATE_RADPS, THROW_SPEED_MPS, THROW_TILT_DEG

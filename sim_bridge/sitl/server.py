@@ -20,7 +20,6 @@ import json
 import math
 import os
 import signal
-import sys
 import threading
 import time
 from typing import Callable
@@ -34,8 +33,8 @@ from companion.control.geometric import max_thrust_n  # noqa: E402
 from companion.frames import geodetic_to_ned, integrate_quat_body_rates  # noqa: E402
 from companion.link.dialects import Mode, dialect_named  # noqa: E402
 from companion.link.endpoints import MavEndpoint, UdpLink  # noqa: E402
-from companion.link.signing import Signing, SigningError, TimestampStore, load_key  # noqa: E402
 from companion.link.msgdef import swarmdrop  # noqa: E402
+from companion.link.signing import Signing, SigningError, TimestampStore, load_key  # noqa: E402
 from companion.link.tlog import Tlog  # noqa: E402
 from companion.link.wire import Codec  # noqa: E402
 from companion.mission import Mission  # noqa: E402
@@ -44,16 +43,24 @@ from companion.state import FleetSetpoint, FleetState  # noqa: E402
 from companion.swarm import FLAG_ASSEMBLED, swarm_due  # noqa: E402
 from sim_bridge.carrier import carrier_position_ned_m, release_times_s, sample_release_attitudes  # noqa: E402
 from sim_bridge.physics import Physics  # noqa: E402
-from sim_bridge.record import MissionTracker, RunResult, warm_up as warm_up_tracker  # noqa: E402
+from sim_bridge.record import MissionTracker, RunResult  # noqa: E402
+from sim_bridge.record import warm_up as warm_up_tracker
 from sim_bridge.sitl.autopilot import Autopilot  # noqa: E402
 from sim_bridge.sitl.config import SitlConfig  # noqa: E402
 from sim_bridge.sitl.handler import MessageRouter  # noqa: E402
 from sim_bridge.sitl.medium import Medium  # noqa: E402
 from sim_bridge.sitl.params_table import ParamTable, default_specs  # noqa: E402
 from sim_bridge.sitl.telemetry import (  # noqa: E402
-    GLOBAL_POSITION_INT, GPS_GLOBAL_ORIGIN, GPS_RAW_INT, HEARTBEAT, LOCAL_POSITION_NED, STREAMS, IntervalScheduler,
+    GLOBAL_POSITION_INT,
+    GPS_GLOBAL_ORIGIN,
+    GPS_RAW_INT,
+    HEARTBEAT,
+    LOCAL_POSITION_NED,
+    STREAMS,
+    IntervalScheduler,
     TelemetryBuilder,
-    default_interval_s, quantised_origin,
+    default_interval_s,
+    quantised_origin,
 )
 
 HEARTBEAT_POLL_S = 0.02

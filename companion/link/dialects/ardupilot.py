@@ -4,8 +4,14 @@ from __future__ import annotations
 import math
 
 from companion.link.dialects.base import (
-    MODE_FLAG_CUSTOM, MODE_FLAG_GUIDED, MODE_FLAG_MANUAL_INPUT, MODE_FLAG_STABILIZE, AutopilotDialect,
-    HeartbeatState, Mode, clamp01,
+    MODE_FLAG_CUSTOM,
+    MODE_FLAG_GUIDED,
+    MODE_FLAG_MANUAL_INPUT,
+    MODE_FLAG_STABILIZE,
+    AutopilotDialect,
+    HeartbeatState,
+    Mode,
+    clamp01,
 )
 
 STABILIZE, GUIDED, LOITER, RTL, LAND, BRAKE, THROW = 0, 4, 5, 6, 9, 17, 18

@@ -4,8 +4,16 @@ from __future__ import annotations
 import math
 
 from companion.link.dialects.base import (
-    MODE_FLAG_AUTO, MODE_FLAG_CUSTOM, MODE_FLAG_GUIDED, MODE_FLAG_MANUAL_INPUT, MODE_FLAG_STABILIZE,
-    STATE_ACTIVE, AutopilotDialect, HeartbeatState, Mode, clamp01,
+    MODE_FLAG_AUTO,
+    MODE_FLAG_CUSTOM,
+    MODE_FLAG_GUIDED,
+    MODE_FLAG_MANUAL_INPUT,
+    MODE_FLAG_STABILIZE,
+    STATE_ACTIVE,
+    AutopilotDialect,
+    HeartbeatState,
+    Mode,
+    clamp01,
 )
 
 
