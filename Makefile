@@ -22,6 +22,7 @@ demo-headless: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/ruff check .
+	$(BIN)/mypy companion
 	$(BIN)/python -m pytest -q
 
 bench: $(STAMP)

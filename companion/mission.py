@@ -33,7 +33,7 @@ class FormationConfig:
     """
 
     shape: Literal["circle"] = "circle"
-    radius_m: float = Field(40.0, gt=0)
+    radius_m: float = Field(default=40.0, gt=0)
     slot_order: Literal["sequential", "interleaved"] = "interleaved"
 
 
@@ -46,8 +46,8 @@ class Obstacle:
 @dataclass(config=STRICT)
 class TopologyConfig:
     kind: Literal["chain", "ring", "complete", "k_nearest"] = "chain"
-    weight: float = Field(1.0, gt=0)
-    k: int = Field(3, ge=1)
+    weight: float = Field(default=1.0, gt=0)
+    k: int = Field(default=3, ge=1)
     """Neighbour count for k_nearest (by formation offsets)."""
 
 
@@ -56,53 +56,53 @@ class ApfConfig:
     """Eq. 29-30 with the normalisation of docs/formation.md: K4/K5 are peak
     repulsive accelerations, influence distances set where the field vanishes."""
 
-    kappa: float = Field(3.0, gt=0)
-    vehicle_gain_mps2: float = Field(6.0, ge=0)
-    vehicle_influence_m: float = Field(4.0, gt=0)
-    sensing_radius_m: float = Field(10.0, gt=0)
-    obstacle_gain_mps2: float = Field(10.0, ge=0)
-    obstacle_influence_m: float = Field(8.0, gt=0)
+    kappa: float = Field(default=3.0, gt=0)
+    vehicle_gain_mps2: float = Field(default=6.0, ge=0)
+    vehicle_influence_m: float = Field(default=4.0, gt=0)
+    sensing_radius_m: float = Field(default=10.0, gt=0)
+    obstacle_gain_mps2: float = Field(default=10.0, ge=0)
+    obstacle_influence_m: float = Field(default=8.0, gt=0)
 
 
 @dataclass(config=STRICT)
 class PhaseConfig:
     """Explicit phase-transition thresholds (docs/agent.md)."""
 
-    stable_tilt_deg: float = Field(5.0, gt=0)
-    stable_speed_mps: float = Field(0.2, gt=0)
-    stable_dwell_s: float = Field(0.3, ge=0)
-    assembled_pos_m: float = Field(0.5, gt=0)
-    assembled_speed_mps: float = Field(0.3, gt=0)
-    go_quantum_s: float = Field(1.0, gt=0)
+    stable_tilt_deg: float = Field(default=5.0, gt=0)
+    stable_speed_mps: float = Field(default=0.2, gt=0)
+    stable_dwell_s: float = Field(default=0.3, ge=0)
+    assembled_pos_m: float = Field(default=0.5, gt=0)
+    assembled_speed_mps: float = Field(default=0.3, gt=0)
+    go_quantum_s: float = Field(default=1.0, gt=0)
     """Transit-start proposals are rounded up to a multiple of this (round numbers in logs;
     the agreement itself is the earliest proposal heard, docs/swarm.md)."""
-    land_after_hover_s: float | None = Field(None, ge=0)
+    land_after_hover_s: float | None = Field(default=None, ge=0)
     """Land this long after hover begins; None = hold station."""
-    land_speed_mps: float = Field(0.7, gt=0)
+    land_speed_mps: float = Field(default=0.7, gt=0)
 
 
 @dataclass(config=STRICT)
 class SwarmConfig:
     """The swarm contract on a lossy, delayed link (docs/swarm.md)."""
 
-    rate_hz: float = Field(10.0, gt=0, le=100)
+    rate_hz: float = Field(default=10.0, gt=0, le=100)
     """How often every agent publishes its own state, Hz."""
-    stale_after_s: float = Field(0.5, gt=0)
+    stale_after_s: float = Field(default=0.5, gt=0)
     """A neighbour state older than this leaves consensus and is avoided as a 'ghost'
     (the column its autopilot can hold and land in) instead of as a vehicle."""
-    peer_timeout_s: float = Field(3.0, gt=0)
+    peer_timeout_s: float = Field(default=3.0, gt=0)
     """A vehicle unheard for this long no longer blocks the transit start."""
-    go_margin_s: float = Field(2.0, ge=0)
+    go_margin_s: float = Field(default=2.0, ge=0)
     """A transit-start proposal lies this far ahead, so that it reaches everyone
     (link delay and relays) before it is due."""
-    go_wait_s: float = Field(10.0, ge=0)
+    go_wait_s: float = Field(default=10.0, ge=0)
     """With some vehicles of the mission never heard or silent, the others start
     once everything they hear has been assembled for this long."""
-    own_timeout_s: float = Field(0.5, gt=0)
+    own_timeout_s: float = Field(default=0.5, gt=0)
     """The agent's own state older than this counts as invalid: it commands a stop."""
-    ghost_radius_m: float = Field(1.0, gt=0)
+    ghost_radius_m: float = Field(default=1.0, gt=0)
     """Radius of a silent vehicle's column (hold error of its autopilot plus its size)."""
-    ghost_brake_mps2: float = Field(3.0, gt=0)
+    ghost_brake_mps2: float = Field(default=3.0, gt=0)
     """Deceleration assumed for a silent vehicle's autopilot when it brakes to Hold."""
 
 
@@ -113,7 +113,7 @@ class SetpointConfig:
     kind: Literal["state", "acceleration"] = "state"
     """"state": position, velocity and acceleration that agree (the state eq. 31's
     acceleration leads to lead_s ahead); "acceleration": the acceleration alone."""
-    lead_s: float = Field(0.02, ge=0)
+    lead_s: float = Field(default=0.02, ge=0)
     """Horizon of the state setpoint; the setpoint period."""
 
 
@@ -140,32 +140,32 @@ class GeodeticOrigin:
 
 @dataclass(config=STRICT)
 class MissionConfig:
-    n_vehicles: int = Field(40, ge=1)
+    n_vehicles: int = Field(default=40, ge=1)
     formation: FormationConfig = FormationConfig()
     waypoints_ned_m: tuple[Vec3, ...] = ((100.0, 0.0, -10.0),)
     """Formation-centre waypoints: the first is where the formation assembles, the
     rest are flown in order during transit."""
-    transit_speed_mps: float = Field(4.0, gt=0)
-    transit_accel_mps2: float = Field(0.5, gt=0)
-    waypoint_dwell_s: float = Field(0.0, ge=0)
+    transit_speed_mps: float = Field(default=4.0, gt=0)
+    transit_accel_mps2: float = Field(default=0.5, gt=0)
+    waypoint_dwell_s: float = Field(default=0.0, ge=0)
     yaw_deg: float = 0.0
     obstacles: tuple[Obstacle, ...] = ()
     topology: TopologyConfig = TopologyConfig()
     consensus: ConsensusGains = ConsensusGains()
     apf: ApfConfig = ApfConfig()
-    formation_error_max_m: float = Field(8.0, gt=0)
+    formation_error_max_m: float = Field(default=8.0, gt=0)
     """Slot-position error at which the consensus law saturates (docs/formation.md):
     far from its slot a vehicle then cruises at |k2_pos| * this / |k2_vel| m/s
     instead of accelerating without bound."""
-    consensus_accel_max_mps2: float = Field(3.0, gt=0)
-    total_accel_max_mps2: float = Field(8.0, gt=0)
+    consensus_accel_max_mps2: float = Field(default=3.0, gt=0)
+    total_accel_max_mps2: float = Field(default=8.0, gt=0)
     phases: PhaseConfig = PhaseConfig()
     swarm: SwarmConfig = SwarmConfig()
     setpoint: SetpointConfig = SetpointConfig()
     launch: Literal["carrier", "ground"] = "carrier"
     """How the vehicles get airborne: thrown from the carrier (the autopilot recovers
     them), or armed and taken off from the ground by their agents."""
-    takeoff_alt_m: float = Field(5.0, gt=0.5, le=500)
+    takeoff_alt_m: float = Field(default=5.0, gt=0.5, le=500)
     """Ground launch: climb this far above home before assembling."""
     geofence: GeofenceConfig | None = None
     """Optional: a mission-frame box the agent keeps its setpoints in (None: no fence)."""

@@ -23,20 +23,20 @@ class VehicleParams:
     Rotor k sits at d on body axis (+x, +y, -x, -y) for k = 1..4 as in eq. 6's mixer.
     """
 
-    mass_kg: float = Field(0.030, gt=0)
-    inertia_xx_kgm2: float = Field(1.43e-5, gt=0)
-    inertia_yy_kgm2: float = Field(1.43e-5, gt=0)
-    inertia_zz_kgm2: float = Field(2.89e-5, gt=0)
-    arm_length_m: float = Field(0.043, gt=0)
-    thrust_coeff_n_per_radps2: float = Field(2.3e-8, gt=0)
+    mass_kg: float = Field(default=0.030, gt=0)
+    inertia_xx_kgm2: float = Field(default=1.43e-5, gt=0)
+    inertia_yy_kgm2: float = Field(default=1.43e-5, gt=0)
+    inertia_zz_kgm2: float = Field(default=2.89e-5, gt=0)
+    arm_length_m: float = Field(default=0.043, gt=0)
+    thrust_coeff_n_per_radps2: float = Field(default=2.3e-8, gt=0)
     """k_f in eq. 6: rotor thrust = k_f * Q**2."""
-    torque_to_thrust_m: float = Field(0.0339, gt=0)
+    torque_to_thrust_m: float = Field(default=0.0339, gt=0)
     """c_tau_f in eq. 6: rotor reaction torque per newton of thrust."""
-    rotor_speed_min_radps: float = Field(0.0, ge=0)
-    rotor_speed_max_radps: float = Field(2500.0, gt=0)
-    motor_time_constant_s: float = Field(0.072, ge=0)
+    rotor_speed_min_radps: float = Field(default=0.0, ge=0)
+    rotor_speed_max_radps: float = Field(default=2500.0, gt=0)
+    motor_time_constant_s: float = Field(default=0.072, ge=0)
     """First-order motor lag; 0 means instantaneous rotors."""
-    drag_coeff_n_per_mps: float = Field(0.0, ge=0)
+    drag_coeff_n_per_mps: float = Field(default=0.0, ge=0)
     """Linear translational drag, F = -c * (v - wind). Zero by default (do-nothing default)."""
 
 
@@ -49,12 +49,12 @@ class GeometricGains:
     any airframe. See docs/controllers.md.
     """
 
-    kx_per_s2: float = Field(4.0, ge=0)
-    kv_per_s: float = Field(4.0, ge=0)
-    kR_per_s2: float = Field(200.0, gt=0)
-    kOmega_per_s: float = Field(28.0, gt=0)
-    tilt_max_deg: float = Field(50.0, gt=0, le=89.0)
-    acc_max_mps2: float = Field(12.0, gt=0)
+    kx_per_s2: float = Field(default=4.0, ge=0)
+    kv_per_s: float = Field(default=4.0, ge=0)
+    kR_per_s2: float = Field(default=200.0, gt=0)
+    kOmega_per_s: float = Field(default=28.0, gt=0)
+    tilt_max_deg: float = Field(default=50.0, gt=0, le=89.0)
+    acc_max_mps2: float = Field(default=12.0, gt=0)
     """Norm limit on the commanded acceleration before thrust/tilt saturation."""
 
 
@@ -69,8 +69,8 @@ class PIDGains:
     geometric-vs-PID comparison would no longer isolate large-angle behaviour.
     """
 
-    att_integral_pole_per_s: float = Field(2.0, ge=0)
-    vel_integral_pole_per_s: float = Field(0.0, ge=0)
+    att_integral_pole_per_s: float = Field(default=2.0, ge=0)
+    vel_integral_pole_per_s: float = Field(default=0.0, ge=0)
 
 
 @dataclass(config=STRICT)

@@ -28,14 +28,14 @@ class AttitudeDistribution:
     """
 
     kind: Literal["uniform_so3", "euler", "fixed"] = "uniform_so3"
-    max_angle_deg: float = Field(179.0, gt=0, le=180.0)
-    roll_max_deg: float = Field(180.0, ge=0, le=180.0)
-    pitch_max_deg: float = Field(90.0, ge=0, le=90.0)
-    yaw_max_deg: float = Field(180.0, ge=0, le=180.0)
+    max_angle_deg: float = Field(default=179.0, gt=0, le=180.0)
+    roll_max_deg: float = Field(default=180.0, ge=0, le=180.0)
+    pitch_max_deg: float = Field(default=90.0, ge=0, le=90.0)
+    yaw_max_deg: float = Field(default=180.0, ge=0, le=180.0)
     roll_deg: float = 0.0
     pitch_deg: float = 0.0
     yaw_deg: float = 0.0
-    body_rate_std_radps: float = Field(0.0, ge=0)
+    body_rate_std_radps: float = Field(default=0.0, ge=0)
     """Standard deviation of each body-rate component at release (tumble)."""
 
 
@@ -43,8 +43,8 @@ class AttitudeDistribution:
 class CarrierConfig:
     start_ned_m: tuple[float, float, float] = (0.0, 0.0, -30.0)
     vel_ned_mps: tuple[float, float, float] = (5.0, 0.0, 0.0)
-    first_release_s: float = Field(0.0, ge=0)
-    release_interval_s: float = Field(1.0, gt=0)
+    first_release_s: float = Field(default=0.0, ge=0)
+    release_interval_s: float = Field(default=1.0, gt=0)
     release: Literal["schedule", "command"] = "schedule"
     attitude: AttitudeDistribution = AttitudeDistribution()
 

@@ -1,7 +1,7 @@
 """`python -m sim_bridge.fuzz`: mutated and hostile MAVLink against every port we open.
 
-One run starts a SITL (configs/small_6.yaml: 6 vehicles, the GCS endpoint, the radio)
-and one agent process (vehicle 0), then sends seeded frames, paced, round-robin to:
+One run starts a SITL (6 vehicles, carrier launch, the GCS endpoint, the radio) and one
+agent process (vehicle 0, flying configs/small_6.yaml), then sends seeded frames, paced, round-robin to:
 SITL vehicles 0-2, the SITL's GCS endpoint, the agent's autopilot port and its swarm
 port. Vehicles 3-5 are left alone and watched: their heartbeats (asked for at 5 Hz)
 must never pause for a second. At the end it checks that no process died, no
@@ -258,7 +258,10 @@ def run(frames: int, seed: int, out_dir: Path, rate_hz: float = 12000.0, quiet: 
     medium, gcs_remote, swarm = base + 2 * N_VEHICLES, base + 2 * N_VEHICLES + 1, base + 2 * N_VEHICLES + 2
     py = sys.executable
     sitl_log = open(out_dir / "sitl.log", "w")
-    sitl = subprocess.Popen([py, "-m", "sim_bridge.sitl", "--scenario", str(mission), "--remote-base-port",
+    # No --scenario: its recorder keeps every sample of the run, memory that grows by design and
+    # would hide (or fake) a leak; the agent's mission has the SITL's default home as its origin.
+    sitl = subprocess.Popen([py, "-m", "sim_bridge.sitl", "--vehicles", str(N_VEHICLES), "--launch", "carrier",
+                             "--seed", str(seed), "--remote-base-port",
                              str(remote), "--local-base-port", str(local), "--medium-port", str(medium), "--gcs",
                              "--gcs-port", str(gcs_remote), "--status"], cwd=ROOT, stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, text=True)

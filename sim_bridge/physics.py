@@ -36,9 +36,9 @@ class WindConfig:
     """
 
     steady_ned_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    gust_std_mps: float = Field(0.0, ge=0)
+    gust_std_mps: float = Field(default=0.0, ge=0)
     """Stationary standard deviation of each gust component."""
-    gust_tau_s: float = Field(1.0, gt=0)
+    gust_tau_s: float = Field(default=1.0, gt=0)
     """Correlation time of the Gauss-Markov gust process."""
 
 

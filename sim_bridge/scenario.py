@@ -14,7 +14,7 @@ from sim_bridge.transport import LinkConfig
 
 @dataclass(config=STRICT)
 class PhysicsConfig:
-    rate_hz: float = Field(1000.0, ge=500.0)
+    rate_hz: float = Field(default=1000.0, ge=500.0)
     """Physics (and inner-loop controller) rate; >= 500 Hz."""
     wind: WindConfig = WindConfig()
     ground_z_m: float | None = 0.0
@@ -23,19 +23,19 @@ class PhysicsConfig:
 
 @dataclass(config=STRICT)
 class AgentRateConfig:
-    rate_hz: float = Field(50.0, gt=0)
+    rate_hz: float = Field(default=50.0, gt=0)
 
 
 @dataclass(config=STRICT)
 class SafetyConfig:
-    separation_m: float = Field(1.0, gt=0)
+    separation_m: float = Field(default=1.0, gt=0)
     """Pairs closer than this count as separation violations."""
-    obstacle_margin_m: float = Field(1.0, ge=0)
+    obstacle_margin_m: float = Field(default=1.0, ge=0)
 
 
 @dataclass(config=STRICT)
 class OutputConfig:
-    log_rate_hz: float = Field(50.0, gt=0)
+    log_rate_hz: float = Field(default=50.0, gt=0)
     figures: bool = True
     snapshot_times_s: tuple[float, ...] = (30.0, 50.0, 70.0, 90.0, 110.0, 130.0, 150.0, 170.0)
     attitude_vehicles: tuple[int, ...] = (1, 15, 27, 40)
@@ -49,22 +49,22 @@ class LaunchStudyConfig:
     """Geometric vs PID on single launches (paper Fig. 2 vs 3)."""
 
     enabled: bool = True
-    speed_mps: float = Field(5.0, ge=0)
+    speed_mps: float = Field(default=5.0, ge=0)
     roll_deg: tuple[float, ...] = (90.0, 179.0)
-    duration_s: float = Field(6.0, gt=0)
-    settle_tilt_deg: float = Field(5.0, gt=0)
-    settle_speed_mps: float = Field(0.2, gt=0)
+    duration_s: float = Field(default=6.0, gt=0)
+    settle_tilt_deg: float = Field(default=5.0, gt=0)
+    settle_speed_mps: float = Field(default=0.2, gt=0)
 
 
 @dataclass(config=STRICT)
 class ScenarioConfig:
     name: str = "scenario"
     seed: int = 0
-    duration_s: float = Field(300.0, gt=0)
+    duration_s: float = Field(default=300.0, gt=0)
     """Hard stop for the run, s of simulated time."""
-    completion_tol_m: float = Field(0.05, gt=0)
+    completion_tol_m: float = Field(default=0.05, gt=0)
     """The mission is complete when every vehicle hovers within this of its slot."""
-    completion_hold_s: float = Field(5.0, ge=0)
+    completion_hold_s: float = Field(default=5.0, ge=0)
     """Keep simulating this long after completion (station-keeping evidence)."""
     vehicle: VehicleParams = VehicleParams()
     inner_loop: InnerLoopConfig = InnerLoopConfig()

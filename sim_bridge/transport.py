@@ -26,14 +26,14 @@ _MASK64 = np.uint64(0xFFFFFFFFFFFFFFFF)
 class LinkConfig:
     """The swarm radio: what happens to each copy of a state on its way to one receiver."""
 
-    kind: str = Field("perfect", pattern="^(perfect|lossy)$")
-    loss: float = Field(0.0, ge=0.0, le=1.0)
+    kind: str = Field(default="perfect", pattern="^(perfect|lossy)$")
+    loss: float = Field(default=0.0, ge=0.0, le=1.0)
     """Probability that a copy is lost."""
-    delay_s: float = Field(0.0, ge=0.0, le=10.0)
+    delay_s: float = Field(default=0.0, ge=0.0, le=10.0)
     """Fixed latency of every copy, s."""
-    jitter_s: float = Field(0.0, ge=0.0, le=10.0)
+    jitter_s: float = Field(default=0.0, ge=0.0, le=10.0)
     """Extra latency drawn uniformly in [0, jitter_s]; copies can overtake each other."""
-    range_m: float | None = Field(None, gt=0)
+    range_m: float | None = Field(default=None, gt=0)
     """Receivers further than this from the sender hear nothing (None: everyone)."""
 
 

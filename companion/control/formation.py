@@ -74,12 +74,12 @@ class ConsensusGains:
     no overshoot into neighbours) and a string-stable chain (docs/formation.md).
     """
 
-    k1_pos_per_s2: float = Field(0.0, allow_inf_nan=False)
-    k1_vel_per_s: float = Field(0.0, allow_inf_nan=False)
-    k2_pos_per_s2: float = Field(-0.6, allow_inf_nan=False)
-    k2_vel_per_s: float = Field(-1.6, allow_inf_nan=False)
-    k3_pos_per_s2: float = Field(0.3, allow_inf_nan=False)
-    k3_vel_per_s: float = Field(0.6, allow_inf_nan=False)
+    k1_pos_per_s2: float = Field(default=0.0, allow_inf_nan=False)
+    k1_vel_per_s: float = Field(default=0.0, allow_inf_nan=False)
+    k2_pos_per_s2: float = Field(default=-0.6, allow_inf_nan=False)
+    k2_vel_per_s: float = Field(default=-1.6, allow_inf_nan=False)
+    k3_pos_per_s2: float = Field(default=0.3, allow_inf_nan=False)
+    k3_vel_per_s: float = Field(default=0.6, allow_inf_nan=False)
 
     @staticmethod
     def _block(k_pos: float, k_vel: float) -> np.ndarray:

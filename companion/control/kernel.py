@@ -11,14 +11,22 @@ forty vehicles and thousands of physics steps. One source, two speeds, no fork.
 """
 from __future__ import annotations
 
-from typing import Callable, TypeVar
+from typing import Any, Callable, TypeVar, overload
 
 F = TypeVar("F", bound=Callable)
 
 JIT_OPTIONS_ATTR = "_swarmdrop_jit_options"
 
 
-def kernel(fn: F | None = None, **jit_options) -> F | Callable[[F], F]:
+@overload
+def kernel(fn: F) -> F: ...
+
+
+@overload
+def kernel(fn: None = None, **jit_options: Any) -> Callable[[F], F]: ...
+
+
+def kernel(fn: F | None = None, **jit_options: Any) -> F | Callable[[F], F]:
     """Mark fn as a kernel; jit_options (e.g. inline="always") go to numba.njit.
 
     Returns fn itself, unchanged: calling it runs the Python code.

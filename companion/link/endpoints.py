@@ -195,7 +195,7 @@ class StreamLink(Link):
     def __init__(self, fd_owner: socket.socket | int, crc_extra: Callable[[int], int | None] | None = None):
         super().__init__()
         self._sock = fd_owner if isinstance(fd_owner, socket.socket) else None
-        self._fd = fd_owner.fileno() if self._sock is not None else int(fd_owner)
+        self._fd = fd_owner.fileno() if isinstance(fd_owner, socket.socket) else int(fd_owner)
         self._splitter = FrameSplitter(crc_extra)
 
     def fileno(self) -> int:

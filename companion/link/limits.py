@@ -87,17 +87,17 @@ def fence_trajectory(p: tuple, v: tuple, a: tuple, lo: tuple, hi: tuple, own: tu
     """Keep a position-family setpoint inside the box lo..hi (m, mission NED): the position
     is clipped into it, and where the vehicle (own position) is at or beyond a face, velocity
     and acceleration components pointing further out are zeroed. Scalars, for the agent's tick."""
-    p, v, a = list(p), list(v), list(a)
+    pl, vl, al = list(p), list(v), list(a)
     for i in range(3):
-        if p[i] == p[i]:
-            p[i] = min(max(p[i], lo[i]), hi[i])
+        if pl[i] == pl[i]:
+            pl[i] = min(max(pl[i], lo[i]), hi[i])
         if own[i] >= hi[i]:
-            v[i] = min(v[i], 0.0) if v[i] == v[i] else v[i]
-            a[i] = min(a[i], 0.0) if a[i] == a[i] else a[i]
+            vl[i] = min(vl[i], 0.0) if vl[i] == vl[i] else vl[i]
+            al[i] = min(al[i], 0.0) if al[i] == al[i] else al[i]
         elif own[i] <= lo[i]:
-            v[i] = max(v[i], 0.0) if v[i] == v[i] else v[i]
-            a[i] = max(a[i], 0.0) if a[i] == a[i] else a[i]
-    return tuple(p), tuple(v), tuple(a)
+            vl[i] = max(vl[i], 0.0) if vl[i] == vl[i] else vl[i]
+            al[i] = max(al[i], 0.0) if al[i] == al[i] else al[i]
+    return tuple(pl), tuple(vl), tuple(al)
 
 
 def clamp_tilt(q_wxyz: np.ndarray, tilt_max_rad: float) -> np.ndarray:

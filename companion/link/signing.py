@@ -121,6 +121,8 @@ class TimestampStore:
             self._write()
 
     def _write(self) -> None:
+        if self.path is None:
+            return
         tmp = self.path.with_suffix(self.path.suffix + ".tmp")
         try:
             tmp.write_text(f"{self.last}\n")

@@ -34,6 +34,7 @@ from collections.abc import Callable, Sequence
 from operator import attrgetter, itemgetter
 from typing import Any, NamedTuple
 
+_fastcrc_mcrf4xx: Callable[..., int] | None
 try:  # C implementation of exactly the MAVLink CRC; optional
     from fastcrc.crc16 import mcrf4xx as _fastcrc_mcrf4xx
 except ImportError:  # pragma: no cover - depends on the environment
@@ -56,7 +57,7 @@ def _rev16(x: int) -> int:
     return (_REV8[x & 0xFF] << 8) | _REV8[x >> 8]
 
 
-def crc16_x25_hqx(data: bytes, crc: int = 0xFFFF) -> int:
+def crc16_x25_hqx(data: bytes | bytearray, crc: int = 0xFFFF) -> int:
     """CRC-16/MCRF4XX of data with binascii.crc_hqx (the fallback when fastcrc is absent).
 
     MCRF4XX is the reflected form of CRC-CCITT (poly 0x1021, no final xor) that crc_hqx
@@ -273,7 +274,7 @@ def _extra_table(extra: int) -> tuple[int, ...]:
     return tuple(table)
 
 
-def _crc_with_extra(data: bytes, extra: int) -> int:
+def _crc_with_extra(data: bytes | bytearray, extra: int) -> int:
     """MAVLink frame checksum: CRC of data (frame[1:end]) then of the CRC_EXTRA byte."""
     crc = _crc(data, 0xFFFF)
     tmp = extra ^ (crc & 0xFF)
@@ -319,7 +320,8 @@ class _Spec:
                  "chars", "id3", "wire_get", "decl_to_wire", "wire_arrays", "wire_chars",
                  "n_fields", "defaults")
 
-    def __init__(self, cls: type, base_init: Callable[..., None], mavlink_cls: type):
+    def __init__(self, cls: Any, base_init: Callable[..., None], mavlink_cls: Any):
+        # cls: a pymavlink message class; their attributes are generated, hence Any
         self.cls = cls
         self.crc_extra = cls.crc_extra
         self.extra_table = _extra_table(cls.crc_extra)
@@ -336,7 +338,7 @@ class _Spec:
 
         # The attributes pymavlink's constructor sets besides the fields, taken from the
         # base initialiser itself so that they follow the installed pymavlink.
-        proto = object.__new__(cls)
+        proto: Any = object.__new__(cls)
         base_init(proto, cls.id, cls.msgname)
         proto._fieldnames = cls.fieldnames
         proto._instance_field = cls.instance_field
@@ -394,7 +396,7 @@ class Codec:
                 SWARMDROP_* messages next to pymavlink's common in the SITL).
         """
         self.dialect = dialect
-        self._map: dict[int, type] = dict(dialect.mavlink_map)
+        self._map: dict[int, Any] = dict(dialect.mavlink_map)
         self._owner: dict[int, Any] = {}
         for module in extra:
             for msgid, cls in module.mavlink_map.items():
@@ -585,14 +587,15 @@ class Codec:
 
     def _frame(self, spec: _Spec, values: tuple, sysid: int, compid: int, seq: int) -> bytes:
         try:
+            vals: list[Any] | tuple = values
             if spec.wire_chars:
-                values = list(values)
+                vals = list(vals)
                 for k in spec.wire_chars:
-                    if isinstance(values[k], str):
-                        values[k] = values[k].encode()
+                    if isinstance(vals[k], str):
+                        vals[k] = vals[k].encode()
             if spec.wire_arrays:
-                values = _flatten(values, spec.wire_arrays)
-            payload = spec.unpacker.pack(*values)
+                vals = _flatten(vals, spec.wire_arrays)
+            payload = spec.unpacker.pack(*vals)
             # MAVLink 2 drops trailing zero bytes of the payload, keeping at least one
             payload = payload.rstrip(b"\x00") or payload[:1]
             body = _V2_HEAD_OUT.pack(len(payload), 0, 0, seq, sysid, compid) + spec.id3 + payload

@@ -28,6 +28,7 @@ from enum import IntEnum
 import numpy as np
 
 from companion.agent import FORMATION_PHASES, Agent, OwnState, Phase
+from companion.config import ConfigError
 from companion.control.geometric import pack_control_params, position_law, quat_to_rot
 from companion.frames import rot_to_quat_wxyz
 from companion.link.dialects import Mode
@@ -86,6 +87,14 @@ class Plan:
     """
 
     __slots__ = ("t", "p", "v", "a", "yaw", "yaw_rate", "kind", "attitude_ok")
+    t: float
+    p: list[float]
+    v: list[float]
+    a: list[float]
+    yaw: float
+    yaw_rate: float
+    kind: str
+    attitude_ok: bool
 
     @classmethod
     def of(cls, t: float, sp, q) -> "Plan":
@@ -130,6 +139,8 @@ class AgentNode:
                                  MAV_COMP_ID_ONBOARD_COMPUTER, signing=ap_sign)
         self.sw_ep = MavEndpoint(UdpLink(bind=cfg.swarm_bind, remote=None, learn_remote=False), self.codec, sysid,
                                  MAV_COMP_ID_ONBOARD_COMPUTER, signing=sw_sign)
+        if mcfg.origin is None:  # check_node refuses such a mission first; this keeps the type honest
+            raise ConfigError("mission.origin is required by the agent")
         self.vehicle = VehicleLink(self.ap_ep, cfg.target_sysid, mcfg.origin)
         self.view = view_for(self.mission.n)
         self.swarm = SwarmLink(self.sw_ep, cfg.vehicle_id, cfg.swarm_peers, self.view)
@@ -148,7 +159,7 @@ class AgentNode:
         self.offboard_task: asyncio.Task | None = None
         self.offboard_state = "idle"  # idle -> requesting -> engaged (-> lost: the autopilot left it)
         self.left_offboard = 0
-        self._stop: asyncio.Event | None = None
+        self._stop = asyncio.Event()
         self._failure: NodeFailure | None = None
         self._loop: asyncio.AbstractEventLoop | None = None
         # statistics
@@ -202,6 +213,8 @@ class AgentNode:
             if v.att is None or v.att.time_boot_ms != ms:
                 return
             unix_us = v.unix_us(ms)
+            if unix_us is None:
+                return
             if self.swarm.marker_us < unix_us and swarm_due(unix_us, self.swarm_rate_hz, self.cfg.vehicle_id,
                                                               self.period_us):
                 return
@@ -214,11 +227,15 @@ class AgentNode:
 
     # ------------------------------------------------------------------ the control tick
     def _tick(self, t_recv: float) -> None:
-        cfg, v = self.cfg, self.vehicle
-        ms = v.lpn.time_boot_ms
+        cfg, v, lpn = self.cfg, self.vehicle, self.vehicle.lpn
+        if lpn is None:
+            return
+        ms = lpn.time_boot_ms
         unix_us = v.unix_us(ms)
+        if unix_us is None:
+            return  # ticks start after set-up, which waits for SYSTEM_TIME
         t = (unix_us - self.epoch_us) * 1e-6
-        lp = v.lpn.values
+        lp = lpn.values
         publish = swarm_due(unix_us, self.swarm_rate_hz, cfg.vehicle_id, self.period_us)
         k = (unix_us + self.period_us // 2) // self.period_us
         # Plans on the ticks it publishes (vehicle-staggered, as swarm_due) and every plan_every-th,
@@ -229,6 +246,7 @@ class AgentNode:
             self._plan(t, lp, ms, publish)
             plan_now = False
         plan = self.plan
+        assert plan is not None  # _plan always leaves one
         sent = bool(plan.kind) and self._send(plan, t, ms, lp)
         if sent and self.phase in FORMATION_PHASES:
             self._ensure_offboard()
@@ -287,11 +305,12 @@ class AgentNode:
         vx, vy, vz = clamp_velocity(vx, vy, vz, self.limits)
         fence = self.mission.cfg.geofence
         if fence is not None:
-            own = (lp[0] + off[0], lp[1] + off[1], lp[2] + off[2])
+            own_pos = (lp[0] + off[0], lp[1] + off[1], lp[2] + off[2])
             (px, py, pz), (vx, vy, vz), (ax, ay, az) = fence_trajectory(
-                (px, py, pz), (vx, vy, vz), (ax, ay, az), fence.min_ned_m, fence.max_ned_m, own)
+                (px, py, pz), (vx, vy, vz), (ax, ay, az), fence.min_ned_m, fence.max_ned_m, own_pos)
         try:
-            if self.cfg.output == "attitude" and plan.attitude_ok and self.hover_thrust == self.hover_thrust:
+            if self.cfg.output == "attitude" and plan.attitude_ok and self.hover_thrust == self.hover_thrust \
+                    and v.att is not None:
                 own = (lp[0] + off[0], lp[1] + off[1], lp[2] + off[2]), lp[3:6]
                 fields = self._attitude_fields((px, py, pz, vx, vy, vz, ax, ay, az, plan.yaw, plan.yaw_rate), own,
                                                v.att.values)
@@ -319,27 +338,27 @@ class AgentNode:
         rot_d, f, _ = position_law(tuple(own[0]), tuple(own[1]), rot, row, self.ctrl_prm)
         q_d = clamp_tilt(rot_to_quat_wxyz(np.array(rot_d).reshape(3, 3)), self.limits.tilt_max_rad)
         weight = self.cfg.mission.vehicle.mass_kg * GRAVITY_MPS2
-        thrust = self.vehicle.dialect.thrust_field(f / weight, self.hover_thrust, rot[8])  # rot[8]: cos(tilt)
+        thrust = self.vehicle.ap.thrust_field(f / weight, self.hover_thrust, rot[8])  # rot[8]: cos(tilt)
         return attitude_target_fields(q_d, thrust)
 
     def _ensure_offboard(self) -> None:
         """Switch the autopilot to OFFBOARD (PX4) / GUIDED (ArduPilot) once the agent flies
         formation; if the autopilot later leaves it (its failsafe, a pilot), let it be."""
         v = self.vehicle
-        in_offboard = v.hb is not None and v.dialect.mode_of(v.hb.custom_mode) == Mode.OFFBOARD
+        in_offboard = v.hb is not None and v.ap.mode_of(v.hb.custom_mode) == Mode.OFFBOARD
         if in_offboard:
             self.offboard_state = "engaged"
             return
         if self.offboard_state == "idle":
             self.offboard_state = "requesting"
-            task = v.command_now(176, v.dialect.set_mode_params(Mode.OFFBOARD))
+            task = v.command_now(176, v.ap.set_mode_params(Mode.OFFBOARD))
             task.add_done_callback(self._offboard_done)
             self.offboard_task = task
         elif self.offboard_state == "engaged":
             self.offboard_state = "lost"
             self.left_offboard += 1
             log.warning("autopilot left %s; not switching back (its failsafe or pilot decides)",
-                        v.dialect.mode_name(v.dialect.custom_mode(Mode.OFFBOARD)))
+                        v.ap.mode_name(v.ap.custom_mode(Mode.OFFBOARD)))
 
     def _offboard_done(self, task: asyncio.Task) -> None:
         if task.cancelled() or self.offboard_state != "requesting":
@@ -350,13 +369,13 @@ class AgentNode:
             self.offboard_state = "idle"
         else:
             self.offboard_state = "engaged"
-            log.info("autopilot in %s", self.vehicle.dialect.mode_name(self.vehicle.dialect.custom_mode(Mode.OFFBOARD)))
+            log.info("autopilot in %s", self.vehicle.ap.mode_name(self.vehicle.ap.custom_mode(Mode.OFFBOARD)))
 
     # ------------------------------------------------------------------ setup and launch
     async def _wait(self, cond, timeout_s: float, what: str, code: ExitCode) -> None:
-        deadline = self._loop.time() + timeout_s
+        deadline = self.loop.time() + timeout_s
         while not cond():
-            if self._loop.time() > deadline:
+            if self.loop.time() > deadline:
                 raise NodeFailure(code, f"{what}: nothing within {timeout_s:g} s")
             await asyncio.sleep(0.05)
 
@@ -364,7 +383,7 @@ class AgentNode:
         cfg, v = self.cfg, self.vehicle
         await self._wait(lambda: v.dialect is not None, cfg.setup_timeout_s, "autopilot HEARTBEAT",
                          ExitCode.NO_AUTOPILOT)
-        d = v.dialect
+        d = v.ap
         try:
             for msgid, interval in ((MSG_LPN, 1.0 / cfg.rate_hz), (MSG_ATT_Q, 1.0 / cfg.rate_hz),
                                     (MSG_EXT_STATE, 0.2), (MSG_SYSTEM_TIME, 1.0)):
@@ -372,17 +391,18 @@ class AgentNode:
             await v.request_message(MSG_SYSTEM_TIME)
         except CommandError as err:
             raise NodeFailure(ExitCode.SETUP, f"telemetry streams: {err}") from None
-        deadline = self._loop.time() + cfg.setup_timeout_s
+        deadline = self.loop.time() + cfg.setup_timeout_s
         while v.offset_ned_m is None:  # no origin before the autopilot's first GNSS fix
             try:
                 await v.request_message(MSG_GPS_ORIGIN, timeout_s=1.0, retries=1)
             except CommandError:
-                if self._loop.time() > deadline:
+                if self.loop.time() > deadline:
                     raise NodeFailure(ExitCode.SETUP, "no GPS_GLOBAL_ORIGIN: the autopilot has no EKF origin") \
                         from None
         await self._wait(lambda: v.unix_offset_us is not None, cfg.setup_timeout_s, "SYSTEM_TIME", ExitCode.SETUP)
         # Mission time is Unix time less a whole hour near the autopilot's boot: small floats;
         # every exchanged time is absolute (µs), so agents need not share this epoch.
+        assert v.unix_offset_us is not None  # the wait above
         epoch_s = v.unix_offset_us // 1_000_000 // 3600 * 3600
         self.epoch_us = epoch_s * 1_000_000
         self.swarm.set_epoch(epoch_s)
@@ -423,25 +443,27 @@ class AgentNode:
 
     async def _launch(self) -> None:
         cfg, v = self.cfg, self.vehicle
-        d = v.dialect
+        d = v.ap
         if cfg.launch == "carrier":
             await self._arm_for_throw()
             self._attach()
             return  # the carrier releases; the autopilot's throw recovery takes over
         self._attach()
         home = await v.request_message(MSG_HOME)
-        deadline = self._loop.time() + LAUNCH_TIMEOUT_S
+        deadline = self.loop.time() + LAUNCH_TIMEOUT_S
         while True:
+            hb = v.hb
+            assert hb is not None  # set-up waited for the HEARTBEAT
             try:
-                if d.mode_of(v.hb.custom_mode) != d.takeoff_from_mode:
+                if d.mode_of(hb.custom_mode) != d.takeoff_from_mode:
                     await v.command(176, d.set_mode_params(d.takeoff_from_mode))
-                if not v.hb.armed:
+                if not hb.armed:
                     await v.command(400, [1.0])
                 await v.command(22, d.takeoff_params(cfg.takeoff_alt_m, home.altitude * 1e-3))
                 log.info("taking off to %.1f m", cfg.takeoff_alt_m)
                 return
             except CommandError as err:
-                if self._loop.time() > deadline:
+                if self.loop.time() > deadline:
                     raise NodeFailure(ExitCode.LAUNCH, f"ground launch: {err}") from None
                 log.info("ground launch: %s; retrying", err)
                 await asyncio.sleep(LAUNCH_RETRY_S)
@@ -451,7 +473,7 @@ class AgentNode:
         throw launch recovers the vehicle. An autopilot that will not arm on the carrier
         (or is already flying) is left as it is: the carrier or the operator arms it."""
         v = self.vehicle
-        d = v.dialect
+        d = v.ap
         if v.hb is None or v.hb.armed or v.hb.in_air:
             return
         try:
@@ -465,14 +487,14 @@ class AgentNode:
     async def _supervise(self) -> None:
         """Companion HEARTBEAT at 1 Hz, autopilot-loss watchdog, statistics file."""
         v = self.vehicle
-        next_stats = self._loop.time() + STATS_PERIOD_S
+        next_stats = self.loop.time() + STATS_PERIOD_S
         while not self._stop.is_set():
             v.heartbeat()
             self.ap_ep.flush()
             gc.collect(1)  # between ticks (see _attach)
-            if self._loop.time() - v.hb_loop_time > self.cfg.heartbeat_timeout_s:
+            if self.loop.time() - v.hb_loop_time > self.cfg.heartbeat_timeout_s:
                 raise NodeFailure(ExitCode.LINK_LOST, f"no autopilot HEARTBEAT for {self.cfg.heartbeat_timeout_s:g} s")
-            if self._loop.time() >= next_stats:
+            if self.loop.time() >= next_stats:
                 self.write_stats()
                 next_stats += STATS_PERIOD_S
             try:
@@ -538,6 +560,13 @@ class AgentNode:
             self._sign_store = TimestampStore(f"{cfg.signing_key_file}.timestamp-{cfg.own_sysid}")
         return Signing(cfg.signing, self._sign_key, link_id=link_id, store=self._sign_store,
                        crc_extra=self.codec.crc_extra)
+
+    @property
+    def loop(self) -> asyncio.AbstractEventLoop:
+        """The event loop run() runs on. Raises RuntimeError before run()."""
+        if self._loop is None:
+            raise RuntimeError("AgentNode.loop before run()")
+        return self._loop
 
     def stats(self) -> dict:
         lat = np.array(self.latency_s) * 1e3 if self.latency_s else np.zeros(0)

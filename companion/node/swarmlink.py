@@ -76,6 +76,8 @@ class SwarmLink:
     def publish(self, states: SwarmStates) -> None:
         """Queue this vehicle's state (one row) to every peer."""
         s = states
+        if self.epoch_us is None:
+            raise RuntimeError("SwarmLink.publish before set_epoch: no mission clock yet")
         t_us = self.epoch_us + int(round(float(s.stamp_s[0]) * 1e6))
         go = float(s.t_go_s[0])
         t_go_us = self.epoch_us + int(round(go * 1e6)) if math.isfinite(go) else 0

@@ -142,11 +142,22 @@ class VehicleLink:
         self.launch_ready = self.dialect.launch_ready(self.hb)
         self.hb_loop_time = asyncio.get_running_loop().time()
 
+    @property
+    def ap(self) -> AutopilotDialect:
+        """The autopilot's dialect, once its HEARTBEAT has been heard.
+
+        Raises:
+            CommandError: no autopilot heard yet (set-up waits for one before using this).
+        """
+        if self.dialect is None:
+            raise CommandError("no autopilot HEARTBEAT heard yet")
+        return self.dialect
+
     def _on_extended_sys_state(self, msg) -> None:
         self.landed_state = msg.landed_state
         if self.hb is not None:
             self.hb = HeartbeatState(self.hb.custom_mode, self.hb.base_mode, self.hb.system_status, msg.landed_state)
-            self.launch_ready = self.dialect.launch_ready(self.hb)
+            self.launch_ready = self.dialect is not None and self.dialect.launch_ready(self.hb)
 
     def _on_gps_global_origin(self, msg) -> None:
         o = (msg.latitude, msg.longitude, msg.altitude)
@@ -157,7 +168,7 @@ class VehicleLink:
             return
         m = self.mission_origin
         self.offset_ned_m = geodetic_to_ned(o[0] * 1e-7, o[1] * 1e-7, o[2] * 1e-3, m.lat_deg, m.lon_deg, m.alt_amsl_m)
-        self.offset = tuple(float(x) for x in self.offset_ned_m)
+        self.offset = (float(self.offset_ned_m[0]), float(self.offset_ned_m[1]), float(self.offset_ned_m[2]))
         if self.origin_e7 is not None:
             log.warning("EKF origin moved: local positions jump by %s m", np.round(self.offset_ned_m, 3))
         self.origin_e7 = o
@@ -277,6 +288,8 @@ class VehicleLink:
         if name not in self._param_types:
             await self.get_param(name)  # learns the type to send
         ptype = self._param_types.get(name, MAV_PARAM_TYPE_REAL32)
+        if self.dialect is None:
+            raise CommandError(f"PARAM_SET {name}: no autopilot heard yet")
         enc = self.dialect.param_encoding
         wire = encode_param_value(value, ptype, enc)
         fut = asyncio.get_running_loop().create_future()

@@ -17,14 +17,14 @@ from sim_bridge.transport import LinkConfig
 @dataclass(config=STRICT)
 class EndpointConfig:
     remote_host: str = "127.0.0.1"
-    remote_base_port: int = Field(14540, ge=1, le=65535)
+    remote_base_port: int = Field(default=14540, ge=1, le=65535)
     """Vehicle k sends to remote_host:remote_base_port+k until someone talks to it."""
     bind_host: str = "127.0.0.1"
-    local_base_port: int = Field(18570, ge=0, le=65535)
+    local_base_port: int = Field(default=18570, ge=0, le=65535)
     """Vehicle k listens on bind_host:local_base_port+k (0 = ephemeral ports)."""
     gcs_enabled: bool = False
-    gcs_remote_port: int = Field(14550, ge=1, le=65535)
-    gcs_local_port: int = Field(0, ge=0, le=65535)
+    gcs_remote_port: int = Field(default=14550, ge=1, le=65535)
+    gcs_local_port: int = Field(default=0, ge=0, le=65535)
     """Shared GCS link carrying every vehicle (0 = ephemeral local port)."""
 
     def vehicle_remote_port(self, k: int) -> int:
@@ -38,8 +38,8 @@ class EndpointConfig:
 
 @dataclass(config=STRICT)
 class HomeConfig:
-    lat_deg: float = Field(47.397742, ge=-90, le=90)
-    lon_deg: float = Field(8.545594, ge=-180, le=180)
+    lat_deg: float = Field(default=47.397742, ge=-90, le=90)
+    lon_deg: float = Field(default=8.545594, ge=-180, le=180)
     alt_amsl_m: float = 488.0
 
 
@@ -48,45 +48,45 @@ class StreamRates:
     """Default telemetry rates, Hz (0 = off). HEARTBEAT runs on wall-clock time,
     the others on simulation time (as PX4's streams run on PX4's clock)."""
 
-    heartbeat: float = Field(1.0, ge=0)
-    sys_status: float = Field(1.0, ge=0)
-    extended_sys_state: float = Field(1.0, ge=0)
-    local_position_ned: float = Field(10.0, ge=0)
-    attitude: float = Field(10.0, ge=0)
-    attitude_quaternion: float = Field(10.0, ge=0)
-    global_position_int: float = Field(5.0, ge=0)
-    gps_raw_int: float = Field(1.0, ge=0)
-    home_position: float = Field(1.0, ge=0)
-    system_time: float = Field(1.0, ge=0)
-    battery_status: float = Field(0.5, ge=0)
+    heartbeat: float = Field(default=1.0, ge=0)
+    sys_status: float = Field(default=1.0, ge=0)
+    extended_sys_state: float = Field(default=1.0, ge=0)
+    local_position_ned: float = Field(default=10.0, ge=0)
+    attitude: float = Field(default=10.0, ge=0)
+    attitude_quaternion: float = Field(default=10.0, ge=0)
+    global_position_int: float = Field(default=5.0, ge=0)
+    gps_raw_int: float = Field(default=1.0, ge=0)
+    home_position: float = Field(default=1.0, ge=0)
+    system_time: float = Field(default=1.0, ge=0)
+    battery_status: float = Field(default=0.5, ge=0)
 
 
 @dataclass(config=STRICT)
 class TimeConfig:
-    speed: float = Field(1.0, gt=0, le=1000)
+    speed: float = Field(default=1.0, gt=0, le=1000)
     """Simulation seconds per wall second (free-running and lockstep-idle pacing)."""
     lockstep: bool = False
     """Simulation time waits for the vehicles' companions (docs/sitl.md, "Lockstep")."""
-    lockstep_detach_s: float = Field(2.0, gt=0)
+    lockstep_detach_s: float = Field(default=2.0, gt=0)
     """Wall seconds after which a silent companion no longer holds the lockstep clock."""
     epoch_unix_s: float | None = None
     """SYSTEM_TIME.time_unix_usec = this + simulation time (None: the wall clock at start)."""
-    start_when_attached: int = Field(0, ge=0)
+    start_when_attached: int = Field(default=0, ge=0)
     """The clock stays at 0 until this many vehicles have heard from a companion
     (a fleet run starts its mission only when every agent is up)."""
-    tick_s: float = Field(0.01, gt=0, le=0.1)
+    tick_s: float = Field(default=0.01, gt=0, le=0.1)
     """Outer step: setpoints are sampled, telemetry scheduled and lockstep gated per tick."""
-    autopilot_rate_hz: float = Field(50.0, gt=0)
+    autopilot_rate_hz: float = Field(default=50.0, gt=0)
     """Rate of the mode/failsafe/landing logic (rounded to whole ticks)."""
-    physics_rate_hz: float = Field(500.0, ge=100)
+    physics_rate_hz: float = Field(default=500.0, ge=100)
 
 
 @dataclass(config=STRICT)
 class SpawnConfig:
     launch: Literal["ground", "carrier"] = "ground"
-    grid_spacing_m: float = Field(2.0, gt=0)
+    grid_spacing_m: float = Field(default=2.0, gt=0)
     """Ground spawn: vehicle k at a square grid position around the origin."""
-    gps_fix_delay_max_s: float = Field(0.0, ge=0)
+    gps_fix_delay_max_s: float = Field(default=0.0, ge=0)
     """Each vehicle gets its first GNSS fix at a random time in [0, this] (seeded), and its
     EKF origin where it is then: docked vehicles ride the carrier meanwhile, so origins differ."""
 
@@ -97,12 +97,12 @@ class MediumConfig:
     one port, the medium forwards it to the vehicles in range with the link's faults."""
 
     enabled: bool = False
-    port: int = Field(0, ge=0, le=65535)
+    port: int = Field(default=0, ge=0, le=65535)
     """UDP port on bind_host (0 = ephemeral)."""
-    agent_base_port: int = Field(0, ge=0, le=65535)
+    agent_base_port: int = Field(default=0, ge=0, le=65535)
     """Vehicle k's agent listens on bind_host:agent_base_port+k (0: answer the address it sends from)."""
     link: LinkConfig = LinkConfig()
-    swarm_rate_hz: float = Field(10.0, gt=0)
+    swarm_rate_hz: float = Field(default=10.0, gt=0)
     """How often agents publish (the mission's swarm.rate_hz; lockstep waits for these)."""
 
 
@@ -119,7 +119,7 @@ class SigningConfig:
 
 @dataclass(config=STRICT)
 class SitlConfig:
-    vehicles: int = Field(1, ge=1, le=250)
+    vehicles: int = Field(default=1, ge=1, le=250)
     dialect: Literal["px4", "ardupilot"] = "px4"
     """Which autopilot every vehicle behaves like (HEARTBEAT, modes, parameters, setpoint rules)."""
     seed: int = 0

@@ -99,7 +99,7 @@ def parse_with_includes(path: Path) -> list[ET.Element]:
             raise GenerateError(f"MAVLink definition file not found: {p}")
         root = ET.parse(p).getroot()
         roots.append(root)
-        queue.extend((p.parent / inc.text.strip()).resolve() for inc in root.findall("include"))
+        queue.extend((p.parent / (inc.text or "").strip()).resolve() for inc in root.findall("include"))
     return roots
 
 
@@ -108,7 +108,7 @@ def all_xml_message_ids() -> dict[int, str]:
     ids: dict[int, str] = {}
     for root in parse_with_includes(pymavlink_v20_dir() / "all.xml"):
         for m in root.iter("message"):
-            ids[int(m.get("id"))] = m.get("name")
+            ids[int(m.get("id", "-1"))] = m.get("name", "")
     return ids
 
 
@@ -124,7 +124,7 @@ def copy_common_messages() -> tuple[str, list[ET.Element]]:
     version = roots[0].findtext("version")
     if version is None:
         raise GenerateError("common.xml has no <version>")
-    found = {int(m.get("id")): m for root in roots for m in root.iter("message")}
+    found = {int(m.get("id", "-1")): m for root in roots for m in root.iter("message")}
     out = []
     for msgid, name in sorted(COMMON_MESSAGES.items()):
         src = found.get(msgid)
@@ -230,6 +230,8 @@ def dialect_xml() -> str:
 
 def _load_module(path: Path, name: str):
     spec = importlib.util.spec_from_file_location(name, path)
+    if spec is None or spec.loader is None:
+        raise GenerateError(f"cannot load {path} as a module")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
