@@ -177,6 +177,8 @@ class Signing:
         if self.mode != "off" and len(self.key) != 32:
             raise SigningError(f"signing mode {self.mode!r} needs a 32-byte key (--signing-key FILE)")
         self._ts = max(now_10us(self.wall_clock), self.store.last + 1)
+        self._hash = hashlib.sha256(self.key)
+        """SHA-256 state after the key: copied per frame instead of hashing key + frame anew."""
         self._streams: dict[tuple[int, int, int], int] = {}
         self._newest = 0
 
@@ -194,14 +196,15 @@ class Signing:
         extra = self.crc_extra(msgid) if self.crc_extra is not None else None
         if extra is None:
             return frame
-        body = bytearray(frame[1:end])
-        body[1] |= IFLAG_SIGNED  # the CRC covers the flags: recompute it
-        crc = _crc_with_extra(bytes(body), extra)
+        body = bytes((frame[1], frame[2] | IFLAG_SIGNED)) + frame[3:end]  # the CRC covers the flags
+        crc = _crc_with_extra(body, extra)
         self._ts = max(self._ts + 1, now_10us(self.wall_clock))
         self.store.note(self._ts, time.monotonic())
-        head = b"\xfd" + bytes(body) + crc.to_bytes(2, "little")
-        tail = bytes((self.link_id & 0xFF,)) + self._ts.to_bytes(6, "little")
-        return head + tail + _digest(self.key, head + tail)
+        signed = b"".join((b"\xfd", body, crc.to_bytes(2, "little"), bytes((self.link_id & 0xFF,)),
+                           self._ts.to_bytes(6, "little")))
+        h = self._hash.copy()
+        h.update(signed)
+        return signed + h.digest()[:6]
 
     # ---- incoming --------------------------------------------------------------------
     def check(self, frame: bytes) -> bool:
@@ -222,7 +225,9 @@ class Signing:
             self.counters.bad_signature += 1
             return False
         signed_part, sig = frame[:end + 7], frame[end + 7:end + 13]
-        if _digest(self.key, signed_part) != sig:
+        h = self._hash.copy()
+        h.update(signed_part)
+        if h.digest()[:6] != sig:
             self.counters.bad_signature += 1
             return False
         link_id = frame[end]
@@ -251,11 +256,8 @@ class Signing:
         if len(key) != 32:
             raise SigningError("a signing key is 32 bytes")
         self.key = bytes(key)
+        self._hash = hashlib.sha256(self.key)
         self._streams.clear()
 
     def close(self) -> None:
         self.store.close()
-
-
-def _digest(key: bytes, data: bytes) -> bytes:
-    return hashlib.sha256(key + data).digest()[:6]
