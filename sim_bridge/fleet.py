@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from sim_bridge.scenario import ScenarioConfig
+from sim_bridge.sitl.status import SitlStatus
 
 PR_SET_PDEATHSIG = 1
 EPOCH_UNIX_S = 1767225600.0  # 2026-01-01T00:00:00Z: a fixed SITL clock, so lockstep runs repeat exactly
@@ -228,7 +229,8 @@ class Fleet:
         self.out = opts.out_dir
         self.agents: list[subprocess.Popen] = []
         self.sitl: subprocess.Popen | None = None
-        self.status: dict = {}
+        self.status = SitlStatus()
+        """The SITL's last STATUS line."""
         self.events: list[str] = []
         self.dead: dict[int, int] = {}
         self.killed: set[int] = set()
@@ -279,12 +281,10 @@ class Fleet:
         with open(self.out / "sitl.log", "w") as log:
             for line in self.sitl.stdout:
                 line = line.rstrip("\n")
-                if line.startswith("STATUS "):
-                    try:
-                        self.status = json.loads(line[7:])
-                    except json.JSONDecodeError:
-                        pass
-                else:
+                st = SitlStatus.from_line(line)
+                if st is not None:
+                    self.status = st
+                elif not line.startswith("STATUS "):
                     self._sitl_lines.append(line)
                 log.write(line + "\n")
                 log.flush()
@@ -380,19 +380,19 @@ class Fleet:
                        desc=f"{self.cfg.name} fleet", mininterval=0.5)
             while self.sitl.poll() is None:
                 st = self.status
-                sim_s = float(st.get("sim_s", 0.0))
+                sim_s = st.sim_s
                 self._watch_agents(sim_s)
                 self._watch_sitl(sim_s)
                 if bar is not None:
                     bar.n = min(int(sim_s), bar.total)
-                    ph = st.get("phases", [])
+                    ph = st.phases
                     names = ("launch", "stab", "asm", "transit", "hover", "land")
                     bar.set_postfix_str(" ".join(f"{n}:{c}" for n, c in zip(names, ph) if c)
-                                        + f" rtf:{st.get('rtf')} attached:{st.get('attached', 0)}/{self.n}"
+                                        + f" rtf:{st.rtf} attached:{st.attached}/{self.n}"
                                         + (f" dead:{len(self.dead)}" if self.dead else ""), refresh=False)
                     bar.refresh()
                 time.sleep(0.1)
-            self._watch_agents(float(self.status.get("sim_s", 0.0)))
+            self._watch_agents(self.status.sim_s)
         finally:
             if bar is not None:
                 bar.close()
@@ -425,7 +425,7 @@ class Fleet:
             "dialect": self.opts.dialect, "lockstep": self.opts.lockstep, "output": self.opts.output,
             "agents": self.n, "setpoint_rate_hz": self.opts.rate_hz, "wall_s": wall_s,
             "interrupted": self.interrupted,
-            "sitl_status": self.status,
+            "sitl_status": dataclasses.asdict(self.status),
             "dead_agents": {str(k): code for k, code in self.dead.items()},
             "killed_agents": sorted(self.killed), "events": self.events,
             "agent_cpu_fraction_of_core": {"mean": f(cpu, np.mean), "max": f(cpu, np.max),
@@ -437,7 +437,7 @@ class Fleet:
             "agent_startup_s": {"max": f(startup, np.max), "mean": f(startup, np.mean)},
             "agent_pss_mb": {"mean": f(pss, np.mean), "max": f(pss, np.max)},
             "sitl_cpu_fraction_of_core": self.sitl_cpu,
-            "swarm_link_bytes_per_s_per_vehicle": (self.status.get("link_bytes_per_s_per_vehicle")),
+            "swarm_link_bytes_per_s_per_vehicle": self.status.link_bytes_per_s_per_vehicle,
             "signing": self._signing_totals(stats),
         }
 

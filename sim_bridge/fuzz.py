@@ -37,6 +37,7 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 from companion.link.msgdef import swarmdrop as sd  # noqa: E402
 from companion.link.wire import Codec, _crc_with_extra, split_datagram  # noqa: E402
 from sim_bridge.fleet import find_free_udp_range, terminate_all  # noqa: E402
+from sim_bridge.sitl.status import SitlStatus  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 N_VEHICLES = 6
@@ -345,12 +346,9 @@ def _status_rtfs(lines: list[str], window_s: float) -> tuple[float | None, list[
     """(RTF over the last window_s of wall time, RTF of each status interval in it)."""
     st = []
     for line in lines:
-        if line.startswith("STATUS "):
-            try:
-                d = json.loads(line[7:])
-                st.append((float(d["wall_s"]), float(d["sim_s"])))
-            except (ValueError, KeyError, TypeError):
-                pass
+        status = SitlStatus.from_line(line.rstrip("\n"))
+        if status is not None:
+            st.append((status.wall_s, status.sim_s))
     if len(st) < 2:
         return None, []
     t_end = st[-1][0]

@@ -8,6 +8,7 @@ from large-angle behaviour.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,40 +68,76 @@ def settle_index(tr: LaunchTrace, study: LaunchStudyConfig) -> int | None:
     return 0 if len(bad) == 0 else int(bad[-1]) + 1
 
 
-def launch_metrics(tr: LaunchTrace, study: LaunchStudyConfig) -> dict:
+@dataclass(frozen=True)
+class LaunchOutcome:
+    """How one launch went (SI units; None where the vehicle never settled)."""
+
+    settled: bool
+    settling_time_s: float | None
+    drift_m: float | None
+    drift_horizontal_m: float | None
+    final_displacement_m: float
+    max_lateral_speed_mps: float
+    altitude_loss_m: float
+    max_tilt_after_0p5s_deg: float
+
+
+@dataclass(frozen=True)
+class LaunchComparison:
+    """Both controllers on the same release; pid_over_geometric: PID's figure over the
+    geometric controller's, for settling time, drift and lateral speed (None if undefined)."""
+
+    roll_deg: float
+    geometric: LaunchOutcome
+    pid: LaunchOutcome
+    pid_over_geometric: dict[str, float | None]
+
+    @property
+    def key(self) -> str:
+        return f"roll_{self.roll_deg:g}"
+
+    def to_json(self) -> dict:
+        return {"geometric": dataclasses.asdict(self.geometric), "pid": dataclasses.asdict(self.pid),
+                "pid_over_geometric": dict(self.pid_over_geometric)}
+
+
+def launch_study_json(study: list[LaunchComparison]) -> dict:
+    """{"roll_90": {"geometric": {...}, "pid": {...}, "pid_over_geometric": {...}}, ...} for metrics.json."""
+    return {c.key: c.to_json() for c in study}
+
+
+def launch_metrics(tr: LaunchTrace, study: LaunchStudyConfig) -> LaunchOutcome:
     """Settling time, drift and lateral speed of one launch (SI units)."""
     k = settle_index(tr, study)
     disp = tr.pos_ned_m - tr.pos_ned_m[0]
-    out = {
-        "settled": k is not None,
-        "settling_time_s": None if k is None else float(tr.t_s[k]),
-        "drift_m": None if k is None else float(np.linalg.norm(disp[k])),
-        "drift_horizontal_m": None if k is None else float(np.linalg.norm(disp[k, :2])),
-        "final_displacement_m": float(np.linalg.norm(disp[-1])),
-        "max_lateral_speed_mps": float(np.abs(tr.vel_ned_mps[:, 1]).max()),
-        "altitude_loss_m": float(max(0.0, disp[:, 2].max())),
-        "max_tilt_after_0p5s_deg": float(np.degrees(tr.tilt_rad[tr.t_s >= 0.5].max())),
-    }
-    return out
+    return LaunchOutcome(
+        settled=k is not None,
+        settling_time_s=None if k is None else float(tr.t_s[k]),
+        drift_m=None if k is None else float(np.linalg.norm(disp[k])),
+        drift_horizontal_m=None if k is None else float(np.linalg.norm(disp[k, :2])),
+        final_displacement_m=float(np.linalg.norm(disp[-1])),
+        max_lateral_speed_mps=float(np.abs(tr.vel_ned_mps[:, 1]).max()),
+        altitude_loss_m=float(max(0.0, disp[:, 2].max())),
+        max_tilt_after_0p5s_deg=float(np.degrees(tr.tilt_rad[tr.t_s >= 0.5].max())),
+    )
 
 
-def run_launch_study(cfg: ScenarioConfig) -> tuple[dict, dict[float, dict[str, LaunchTrace]]]:
+def run_launch_study(cfg: ScenarioConfig) -> tuple[list[LaunchComparison], dict[float, dict[str, LaunchTrace]]]:
     """Fly every configured roll with both controllers.
 
     Returns:
-        metrics: {"roll_90": {"geometric": {...}, "pid": {...}, "pid_over_geometric": {...}}, ...}
+        comparisons: one LaunchComparison per configured roll, in order.
         traces: {roll_deg: {"geometric": LaunchTrace, "pid": LaunchTrace}}
     """
     study = cfg.launch_study
-    metrics, traces = {}, {}
+    out, traces = [], {}
     for roll in study.roll_deg:
         pair = {c: fly_launch(cfg, c, roll) for c in ("geometric", "pid")}
-        m = {c: launch_metrics(tr, study) for c, tr in pair.items()}
-        ratios = {}
+        g, p = launch_metrics(pair["geometric"], study), launch_metrics(pair["pid"], study)
+        ratios: dict[str, float | None] = {}
         for key in ("settling_time_s", "drift_m", "max_lateral_speed_mps"):
-            g, p = m["geometric"][key], m["pid"][key]
-            ratios[key] = None if (g is None or p is None or g == 0) else p / g
-        m["pid_over_geometric"] = ratios
-        metrics[f"roll_{roll:g}"] = m
+            gv, pv = getattr(g, key), getattr(p, key)
+            ratios[key] = None if (gv is None or pv is None or gv == 0) else pv / gv
+        out.append(LaunchComparison(float(roll), g, p, ratios))
         traces[roll] = pair
-    return metrics, traces
+    return out, traces

@@ -7,6 +7,7 @@ import numpy as np
 
 from companion import frames
 from companion.agent import IN_FORMATION, Phase
+from sim_bridge.launch_study import LaunchComparison, launch_study_json
 from sim_bridge.record import RunResult
 
 
@@ -58,7 +59,7 @@ def stabilisation(result: RunResult) -> list[dict]:
     return rows
 
 
-def compute_metrics(result: RunResult, launch_study: dict | None) -> dict:
+def compute_metrics(result: RunResult, launch_study: list[LaunchComparison] | None) -> dict:
     cfg = result.cfg
     t, dev = formation_deviation(result)
     stab = stabilisation(result)
@@ -120,7 +121,7 @@ def compute_metrics(result: RunResult, launch_study: dict | None) -> dict:
         },
     }
     if launch_study is not None:
-        m["launch_study"] = launch_study
+        m["launch_study"] = launch_study_json(launch_study)
     m["checks"] = _checks(m, cfg)
     return m
 

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
-import json
 import math
 import os
 import signal
@@ -50,6 +49,7 @@ from sim_bridge.sitl.config import SitlConfig  # noqa: E402
 from sim_bridge.sitl.handler import MessageRouter  # noqa: E402
 from sim_bridge.sitl.medium import Medium  # noqa: E402
 from sim_bridge.sitl.params_table import ParamTable, default_specs  # noqa: E402
+from sim_bridge.sitl.status import SitlStatus  # noqa: E402
 from sim_bridge.sitl.telemetry import (  # noqa: E402
     GLOBAL_POSITION_INT,
     GPS_GLOBAL_ORIGIN,
@@ -661,18 +661,18 @@ class SitlServer:
                 break
             await asyncio.sleep(0)  # let the sockets be read
 
-    def status(self) -> dict:
+    def status(self) -> SitlStatus:
         """One line of progress for a fleet harness."""
         md = self.medium
         wall = 0.0 if self.wall_started is None else self.wall_clock() - self.wall_started
-        out = {"sim_s": round(self.sim_s, 3), "wall_s": round(wall, 3),
-               "rtf": round((self.sim_s - self.sim_started_s) / wall, 3) if wall > 0 else None,
-               "attached": int(self.attached.sum()), "armed": int(sum(ap.armed for ap in self.autopilots)),
-               "complete": self.mission_done}
-        if md is not None:
-            out["phases"] = np.bincount(md.phase, minlength=6).tolist()
-            out["link_bytes_per_s_per_vehicle"] = round(float(md.bytes_in.sum()) / max(self.sim_s, 1e-9) / self.n, 1)
-        return out
+        return SitlStatus(
+            sim_s=round(self.sim_s, 3), wall_s=round(wall, 3),
+            rtf=round((self.sim_s - self.sim_started_s) / wall, 3) if wall > 0 else None,
+            attached=int(self.attached.sum()), armed=int(sum(ap.armed for ap in self.autopilots)),
+            complete=self.mission_done,
+            phases=tuple(np.bincount(md.phase, minlength=6).tolist()) if md is not None else (),
+            link_bytes_per_s_per_vehicle=round(float(md.bytes_in.sum()) / max(self.sim_s, 1e-9) / self.n, 1)
+            if md is not None else None)
 
     async def _status_task(self, out) -> None:
         while not self._stop.is_set():
@@ -680,7 +680,7 @@ class SitlServer:
                 await asyncio.wait_for(self._stop.wait(), STATUS_PERIOD_S)
             except asyncio.TimeoutError:
                 pass
-            print("STATUS " + json.dumps(self.status()), file=out, flush=True)
+            print(self.status().to_line(), file=out, flush=True)
 
     async def run(self, on_ready: Callable[["SitlServer"], None] | None = None,
                   handle_signals: bool = False, status_out=None, stop_when_done: bool = False,
