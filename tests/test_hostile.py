@@ -16,31 +16,16 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
 from sim_bridge.sitl.config import SitlConfig  # noqa: E402
 from sim_bridge.sitl.params_table import MAV_PARAM_TYPE_REAL32  # noqa: E402
-from sim_bridge.sitl.server import BackgroundSitl, SitlServer  # noqa: E402
-from sim_bridge.sitl.testing import MavClient, local_endpoints  # noqa: E402
+from sim_bridge.sitl.server import SitlServer  # noqa: E402
+from sim_bridge.sitl.testing import MavClient, local_endpoints, pack_frame, running_sitl, vehicle_client  # noqa: E402
 
 N = 3
 
 
 @pytest.fixture(scope="module")
 def sitl():
-    cfg = SitlConfig(vehicles=N, endpoints=local_endpoints(N))
-    bg = BackgroundSitl(cfg)
-    server = bg.start()
-    yield server
-    bg.stop()
-
-
-def client_for(server, k: int) -> MavClient:
-    c = MavClient(server.cfg.endpoints.remote_base_port + k)
-    assert c.wait("HEARTBEAT", lambda m: m.get_srcSystem() == k + 1, 5.0) is not None
-    return c
-
-
-def _frame(msg, sysid=255, seq=0) -> bytes:
-    mav = mavlink.MAVLink(None, srcSystem=sysid, srcComponent=190)
-    mav.seq = seq & 0xFF
-    return msg.pack(mav)
+    with running_sitl(N) as server:
+        yield server
 
 
 def _max_gap_s(client: MavClient, msg_type: str, sysid: int, duration_s: float) -> tuple[float, int]:
@@ -60,9 +45,9 @@ def test_param_list_flood_is_paced_and_spares_other_vehicles(sitl):
     stalled every vehicle's telemetry for seconds. Now a repeated request restarts the one
     paced listing: the flooder gets the table once, and another vehicle's stream keeps flowing."""
     attacker, victim = 0, 1
-    c_att, c_vic = client_for(sitl, attacker), client_for(sitl, victim)
+    c_att, c_vic = vehicle_client(sitl, attacker), vehicle_client(sitl, victim)
     try:
-        frame = _frame(mavlink.MAVLink_param_request_list_message(attacker + 1, 1))
+        frame = pack_frame(mavlink.MAVLink_param_request_list_message(attacker + 1, 1))
         blob = frame * (65000 // len(frame))
         c_att.drain()
         c_vic.drain()
@@ -214,7 +199,7 @@ def test_unknown_incompat_flags_are_dropped():
     from companion.link.wire import Codec, FrameError
 
     codec = Codec(mavlink, swarmdrop)
-    good = bytearray(_frame(mavlink.MAVLink_heartbeat_message(2, 12, 0, 0, 0, 3)))
+    good = bytearray(pack_frame(mavlink.MAVLink_heartbeat_message(2, 12, 0, 0, 0, 3)))
     assert codec.decode(bytes(good)).get_type() == "HEARTBEAT"
     good[2] |= 0x02
     with pytest.raises(FrameError):

@@ -18,7 +18,7 @@ from companion.link.dialects import Mode, dialect_named  # noqa: E402
 from sim_bridge.sitl.config import SitlConfig  # noqa: E402
 from sim_bridge.sitl.params_table import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, encode_param_value  # noqa: E402
 from sim_bridge.sitl.server import BackgroundSitl  # noqa: E402
-from sim_bridge.sitl.testing import MavClient, local_endpoints  # noqa: E402
+from sim_bridge.sitl.testing import MavClient, local_endpoints, pack_frame, running_sitl, vehicle_client  # noqa: E402
 
 PX4 = dialect_named("px4")
 
@@ -29,21 +29,12 @@ POS_ONLY_MASK = 0x9F8 | 0x400  # position, yaw ignored
 
 @pytest.fixture(scope="module")
 def sitl():
-    cfg = SitlConfig(vehicles=N, endpoints=local_endpoints(N))
-    bg = BackgroundSitl(cfg)
-    server = bg.start()
-    yield server
-    bg.stop()
-
-
-def client_for(server, k: int) -> MavClient:
-    c = MavClient(server.cfg.endpoints.remote_base_port + k)
-    assert c.wait("HEARTBEAT", lambda m: m.get_srcSystem() == k + 1, 5.0) is not None
-    return c
+    with running_sitl(N) as server:
+        yield server
 
 
 def test_heartbeat_and_mode_decoding(sitl):
-    c = client_for(sitl, 3)
+    c = vehicle_client(sitl, 3)
     try:
         hb = c.wait("HEARTBEAT", timeout_s=3)
         assert (hb.get_srcSystem(), hb.get_srcComponent()) == (4, 1)
@@ -71,7 +62,7 @@ def test_heartbeat_and_mode_decoding(sitl):
 
 
 def test_arm_commands_acks_and_protocol(sitl):
-    c = client_for(sitl, 0)
+    c = vehicle_client(sitl, 0)
     try:
         ack = c.command(1, 400, 1, target_component=0)  # mavutil style: compid 0
         assert ack.result == mavlink.MAV_RESULT_ACCEPTED
@@ -115,7 +106,7 @@ def test_arm_commands_acks_and_protocol(sitl):
 
 
 def test_full_parameter_list_and_set(sitl):
-    c = client_for(sitl, 0)
+    c = vehicle_client(sitl, 0)
     try:
         c.mav.param_request_list_send(1, 1)
         seen: dict[int, object] = {}
@@ -154,7 +145,7 @@ def test_full_parameter_list_and_set(sitl):
 
 def test_offboard_loss_hold_then_land(sitl):
     k, sysid = 1, 2
-    c = client_for(sitl, k)
+    c = vehicle_client(sitl, k)
     try:
         for name, value in (("COM_OF_LOSS_T", 0.5), ("SD_OBL_LAND_T", 0.5)):
             c.mav.param_set_send(sysid, 1, name.encode(), value, MAV_PARAM_TYPE_REAL32)
@@ -192,21 +183,17 @@ def test_offboard_loss_hold_then_land(sitl):
         c.close()
 
 
-def _frame(msg, sysid=255) -> bytes:
-    return msg.pack(mavlink.MAVLink(None, srcSystem=sysid, srcComponent=190))
-
-
 def test_bad_input_leaves_sitl_and_other_vehicles_unaffected(sitl):
     victim, other = 2, 3
-    c_other = client_for(sitl, other)
-    c = client_for(sitl, victim)
+    c_other = vehicle_client(sitl, other)
+    c = vehicle_client(sitl, victim)
     try:
         ep = sitl.endpoints[victim]
         port = ep.link.local_port
         bad_before = ep.bad_frames + ep.link.bytes_skipped
         arm = mavlink.MAVLink_command_long_message(4, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)  # for sysid 4
-        good = _frame(arm)
-        wrong_crc = bytearray(_frame(mavlink.MAVLink_command_long_message(3, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)))
+        good = pack_frame(arm)
+        wrong_crc = bytearray(pack_frame(mavlink.MAVLink_command_long_message(3, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)))
         wrong_crc[-1] ^= 0xFF
         junk = [b"", b"\x00", b"\xfd", b"\xfd\xff\x00", bytes(range(256)), good[:7], good[:-3], bytes(wrong_crc),
                 b"\xfe\x05" + b"\x00" * 20, b"\xfd" * 300, os.urandom(1000), good]

@@ -107,11 +107,11 @@ def clamp_tilt(q_wxyz: np.ndarray, tilt_max_rad: float) -> np.ndarray:
     axis, and the rest of the rotation (the heading) is kept.
     """
     w, x, y, z = (float(c) for c in q_wxyz)
-    # body z (down) in NED: third column of R(q)
+    # body z (down) in NED: third column of R(q); its down component is cos(tilt)
+    tilt = math.acos(min(1.0, max(-1.0, 1 - 2 * (x * x + y * y))))
+    if tilt <= tilt_max_rad:  # the usual case, on the agent's tick: no arrays
+        return np.asarray(q_wxyz, dtype=float)
     bz = np.array([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
-    tilt = math.acos(min(1.0, max(-1.0, bz[2])))
-    if tilt <= tilt_max_rad:
-        return np.array([w, x, y, z])
     axis = np.cross([0.0, 0.0, 1.0], bz)
     n = float(np.linalg.norm(axis))
     axis = axis / n if n > 1e-9 else np.array([1.0, 0.0, 0.0])  # upside down: tilt about x

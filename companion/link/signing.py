@@ -247,10 +247,6 @@ class Signing:
         self._newest = max(self._newest, ts)
         return True
 
-    def is_signed_ok(self, frame: bytes) -> bool:
-        """The frame carries a signature (one that `check` has verified when it got here)."""
-        return self.mode != "off" and frame[0] == 0xFD and bool(frame[2] & IFLAG_SIGNED)
-
     def set_key(self, key: bytes) -> None:
         """A new key (SETUP_SIGNING over a trusted link): streams start afresh."""
         if len(key) != 32:

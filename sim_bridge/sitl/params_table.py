@@ -230,6 +230,8 @@ class Knobs:
         self.t = table
         self.dialect = dialect
         self.px4 = dialect.name == "px4"
+        self._lim_version = -1
+        self._lim = SetpointLimits()
 
     @property
     def takeoff_alt_m(self) -> float:
@@ -281,7 +283,7 @@ class Knobs:
         """Offboard setpoint limits (companion.link.limits): PX4's parameters; ArduPilot
         keeps PX4's defaults except its own tilt limit (ANGLE_MAX). Cached per table version."""
         t = self.t
-        if getattr(self, "_lim_version", None) == t.version:
+        if self._lim_version == t.version:
             return self._lim
         self._lim_version, self._lim = t.version, self._limits()
         return self._lim

@@ -1,15 +1,17 @@
 """Helpers for tests that talk to the SITL over 127.0.0.1 (free ports, waiting clients)."""
 from __future__ import annotations
 
+import contextlib
 import os
 import time
-from typing import Callable
+from typing import Callable, Iterator
 
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
+from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
 from sim_bridge.fleet import find_free_udp_range  # noqa: E402
-from sim_bridge.sitl.config import EndpointConfig  # noqa: E402
+from sim_bridge.sitl.config import EndpointConfig, SitlConfig  # noqa: E402
 
 
 def free_udp_base_port(count: int) -> int:
@@ -55,3 +57,27 @@ class MavClient:
 
     def close(self) -> None:
         self.conn.close()
+
+
+@contextlib.contextmanager
+def running_sitl(vehicles: int) -> Iterator:
+    """A SITL of `vehicles` on its own thread, on 127.0.0.1 test ports; stopped on exit."""
+    from sim_bridge.sitl.server import BackgroundSitl  # the numba-heavy import only when used
+
+    bg = BackgroundSitl(SitlConfig(vehicles=vehicles, endpoints=local_endpoints(vehicles)))
+    try:
+        yield bg.start()
+    finally:
+        bg.stop()
+
+
+def vehicle_client(server, k: int) -> MavClient:
+    """A MavClient where vehicle k sends, once its HEARTBEAT has been heard (deadline 5 s)."""
+    c = MavClient(server.cfg.endpoints.remote_base_port + k)
+    assert c.wait("HEARTBEAT", lambda m: m.get_srcSystem() == k + 1, 5.0) is not None
+    return c
+
+
+def pack_frame(msg, sysid: int = 255) -> bytes:
+    """msg as an unsigned MAVLink 2 frame from sysid, component 190 (pymavlink)."""
+    return msg.pack(mavlink.MAVLink(None, srcSystem=sysid, srcComponent=190))
