@@ -25,32 +25,37 @@ ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "configs" / "paper_40.yaml"
 
 
-def _fleet_figures(metrics: dict) -> dict:
-    fl = metrics["fleet"]
+def _fleet_figures(report) -> dict:
+    """The bench's figures from a FleetReport (JSON-ready)."""
+    from dataclasses import asdict
+
+    fl, m = report.fleet, report.metrics
+    if m is None:
+        raise RuntimeError("the fleet run recorded nothing")
     return {
-        "real_time_factor": metrics["performance"]["real_time_factor"],
-        "sim_s": metrics["performance"]["sim_s"],
-        "setpoint_deadline_misses": fl["setpoint_deadline_misses"],
-        "agent_latency_ms": fl["agent_latency_ms"],
-        "agent_cpu_fraction_of_core": fl["agent_cpu_fraction_of_core"],
-        "sitl_cpu_fraction_of_core": fl["sitl_cpu_fraction_of_core"],
-        "agent_pss_mb": fl["agent_pss_mb"],
-        "agent_startup_s_in_fleet": fl["agent_startup_s"],
-        "swarm_link_bytes_per_s_per_vehicle": fl["swarm_link_bytes_per_s_per_vehicle"],
-        "dead_agents": fl["dead_agents"],
-        "checks": metrics["checks"],
-        "final_max_deviation_m": metrics["formation_deviation"]["final_max_m"],
-        "min_separation_m": metrics["separation"]["min_pair_distance_m"],
-        "min_obstacle_clearance_m": metrics["obstacles"]["min_clearance_m"],
-        "mission_completion_s": metrics["mission"]["completion_time_s"],
+        "real_time_factor": m.performance.real_time_factor,
+        "sim_s": m.performance.sim_s,
+        "setpoint_deadline_misses": asdict(fl.setpoint_deadline_misses),
+        "agent_latency_ms": asdict(fl.agent_latency_ms),
+        "agent_cpu_fraction_of_core": asdict(fl.agent_cpu_fraction_of_core),
+        "sitl_cpu_fraction_of_core": fl.sitl_cpu_fraction_of_core,
+        "agent_pss_mb": asdict(fl.agent_pss_mb),
+        "agent_startup_s_in_fleet": asdict(fl.agent_startup_s),
+        "swarm_link_bytes_per_s_per_vehicle": fl.swarm_link_bytes_per_s_per_vehicle,
+        "dead_agents": fl.dead_agents,
+        "checks": m.checks,
+        "final_max_deviation_m": m.formation_deviation.final_max_m,
+        "min_separation_m": m.separation.min_pair_distance_m,
+        "min_obstacle_clearance_m": m.obstacles.min_clearance_m,
+        "mission_completion_s": m.mission.completion_time_s,
     }
 
 
 def fleet(config: Path, out: Path, **options) -> dict:
     from sim_bridge.fleet import FleetOptions, run_fleet
 
-    metrics, _ = run_fleet(config, FleetOptions(out_dir=out, progress=False, figures=False, **options))
-    return _fleet_figures(metrics)
+    report, _ = run_fleet(config, FleetOptions(out_dir=out, progress=False, figures=False, **options))
+    return _fleet_figures(report)
 
 
 def paper_40(tmp: Path) -> dict:

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sim_bridge.fleet_report import FleetReport, FleetSection, agent_figures, signing_totals
 from sim_bridge.scenario import ScenarioConfig
 from sim_bridge.sitl.status import SitlStatus
 
@@ -184,18 +185,6 @@ def cpu_s(pid: int) -> float | None:
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
     except (OSError, ValueError, IndexError):
         return None
-
-
-def pooled_percentiles(hists: list, percents) -> dict:
-    """Percentiles (ms) of every agent's latencies together, from their histograms."""
-    hists = [h for h in hists if h and h.get("counts")]
-    if not hists:
-        return {}
-    counts = np.sum([np.asarray(h["counts"]) for h in hists], axis=0)
-    cum = np.cumsum(counts)
-    bin_ms = hists[0]["bin_us"] / 1000.0
-    # upper edge of the bin that holds the percentile (conservative)
-    return {f"p{p:g}": float((np.searchsorted(cum, p / 100.0 * cum[-1]) + 1) * bin_ms) for p in percents}
 
 
 def _tail(path: Path, lines: int = 12) -> str:
@@ -362,7 +351,7 @@ class Fleet:
                 if share is not None:
                     self.steady_cpu[k] = share
 
-    def run(self) -> dict:
+    def run(self) -> FleetReport:
         """Fly the mission; returns metrics (written to out/metrics.json)."""
         from tqdm import tqdm
 
@@ -410,50 +399,21 @@ class Fleet:
                 out.append({"vehicle_id": k})
         return out
 
-    def fleet_section(self, wall_s: float) -> dict:
+    def fleet_section(self, wall_s: float) -> FleetSection:
         stats = self._agent_stats()
-        cpu = list(self.steady_cpu.values())
-        p50 = [s["latency_ms"]["p50"] for s in stats if s.get("latency_ms")]
-        pooled = pooled_percentiles([s.get("latency_hist") for s in stats], (50, 99, 99.9))
-        p99 = [s["latency_ms"]["p99"] for s in stats if s.get("latency_ms")]
-        misses = sum(s.get("deadline_misses", 0) for s in stats)
-        intervals = sum(s.get("setpoint_intervals", 0) for s in stats)
-        startup = [s["startup_s"] for s in stats if s.get("startup_s") is not None]
-        pss = list(self.pss.values())
-        f = lambda xs, fn: float(fn(xs)) if xs else None  # noqa: E731
-        return {
-            "dialect": self.opts.dialect, "lockstep": self.opts.lockstep, "output": self.opts.output,
-            "agents": self.n, "setpoint_rate_hz": self.opts.rate_hz, "wall_s": wall_s,
-            "interrupted": self.interrupted,
-            "sitl_status": dataclasses.asdict(self.status),
-            "dead_agents": {str(k): code for k, code in self.dead.items()},
-            "killed_agents": sorted(self.killed), "events": self.events,
-            "agent_cpu_fraction_of_core": {"mean": f(cpu, np.mean), "max": f(cpu, np.max),
-                                           "measured_from_sim_s": CPU_WINDOW_START_S},
-            "agent_latency_ms": {"pooled": pooled, "p50_median": f(p50, np.median), "p99_max": f(p99, np.max),
-                                 "p99_median": f(p99, np.median)},
-            "setpoint_deadline_misses": {"count": misses, "intervals": intervals,
-                                         "fraction": misses / intervals if intervals else None},
-            "agent_startup_s": {"max": f(startup, np.max), "mean": f(startup, np.mean)},
-            "agent_pss_mb": {"mean": f(pss, np.mean), "max": f(pss, np.max)},
-            "sitl_cpu_fraction_of_core": self.sitl_cpu,
-            "swarm_link_bytes_per_s_per_vehicle": self.status.link_bytes_per_s_per_vehicle,
-            "signing": self._signing_totals(stats),
-        }
+        return FleetSection(
+            dialect=self.opts.dialect, lockstep=self.opts.lockstep, output=self.opts.output, agents=self.n,
+            setpoint_rate_hz=self.opts.rate_hz, wall_s=wall_s, interrupted=self.interrupted,
+            sitl_status=self.status, dead_agents={str(k): code for k, code in self.dead.items()},
+            killed_agents=sorted(self.killed), events=list(self.events),
+            **agent_figures(stats, list(self.steady_cpu.values()), list(self.pss.values()), CPU_WINDOW_START_S),
+            sitl_cpu_fraction_of_core=self.sitl_cpu,
+            swarm_link_bytes_per_s_per_vehicle=self.status.link_bytes_per_s_per_vehicle,
+            signing=signing_totals(stats) if self.opts.signing else None,
+        )
 
-    def _signing_totals(self, stats: list[dict]) -> dict | None:
-        """What the agents' signing layers dropped, summed per link (None when unsigned)."""
-        if not self.opts.signing:
-            return None
-        out: dict[str, dict[str, int]] = {}
-        for s in stats:
-            for link, counters in (s.get("signing") or {}).items():
-                tot = out.setdefault(link, {})
-                for name, value in counters.items():
-                    tot[name] = tot.get(name, 0) + int(value)
-        return out
-
-    def report(self, wall_s: float) -> dict:
+    def report(self, wall_s: float) -> FleetReport:
+        """Score the recording (if any), write metrics.json and the figures."""
         from sim_bridge.figures import write_figures
         from sim_bridge.metrics import compute_metrics
         from sim_bridge.record import load_run
@@ -462,47 +422,19 @@ class Fleet:
             if not self.interrupted:
                 raise RuntimeError("the SITL wrote no recording (see sitl.log)")
             # Interrupted before the SITL's first sample: report the processes, score nothing.
-            metrics = {"recorded": False, "fleet": self.fleet_section(wall_s)}
-            (self.out / "metrics.json").write_text(json.dumps(metrics, indent=2))
-            return metrics
+            report = FleetReport(self.fleet_section(wall_s))
+            (self.out / "metrics.json").write_text(json.dumps(report.to_json(), indent=2))
+            return report
         result = load_run(self.out, self.cfg)
-        metrics = compute_metrics(result, None)
-        metrics["fleet"] = self.fleet_section(wall_s)
-        if result.wall_s > 0:
-            metrics["performance"]["real_time_factor"] = result.sim_s / result.wall_s
-        (self.out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+        report = FleetReport(self.fleet_section(wall_s), compute_metrics(result, None))
+        (self.out / "metrics.json").write_text(json.dumps(report.to_json(), indent=2))
         if self.opts.figures:
             write_figures(result, None, self.out)
-        return metrics
+        return report
 
 
-def summary_lines(metrics: dict, out_dir: Path) -> list[str]:
-    """The console summary of a fleet run (the headless summary plus the fleet figures)."""
-    from sim_bridge.simulate import summary_lines as headless_lines
-
-    fl = metrics["fleet"]
-    fmt = lambda x, p=2: "n/a" if x is None else f"{x:.{p}f}"  # noqa: E731
-    if not metrics.get("recorded", True):
-        lines = [f"run directory: {out_dir}", "  INTERRUPTED before the SITL recorded its first sample: nothing to score"]
-    else:
-        lines = headless_lines(metrics, out_dir)
-    dm = fl["setpoint_deadline_misses"]
-    if fl.get("interrupted") and metrics.get("recorded", True):
-        lines.insert(1, f"  INTERRUPTED at t = {fl['sitl_status'].get('sim_s', 0.0):.1f} s: the checks below see a partial run")
-    lines += [
-        f"  fleet: {fl['agents']} agent processes ({fl['dialect']}, {fl['output']}, "
-        f"{'lockstep' if fl['lockstep'] else 'real time'}), dead: {fl['dead_agents'] or 'none'}",
-        f"  agent CPU: mean {fmt(100 * (fl['agent_cpu_fraction_of_core']['mean'] or 0), 2)} % of a core,"
-        f" latency (all agents) p50 {fmt(fl['agent_latency_ms']['pooled'].get('p50'))} ms,"
-        f" p99 {fmt(fl['agent_latency_ms']['pooled'].get('p99'))} ms, deadline misses {fmt(100 * (dm['fraction'] or 0), 3)} %",
-        f"  agent start {fmt(fl['agent_startup_s']['max'])} s (max), PSS {fmt(fl['agent_pss_mb']['mean'], 1)} MB;"
-        f" SITL CPU {fmt(100 * (fl['sitl_cpu_fraction_of_core'] or 0), 1)} % of a core",
-    ]
-    return lines
-
-
-def run_fleet(config_path: str | Path, opts: FleetOptions) -> tuple[dict, int]:
-    """Load, fly, report. Returns (metrics, exit code: 0 ok, 130 interrupted)."""
+def run_fleet(config_path: str | Path, opts: FleetOptions) -> tuple[FleetReport, int]:
+    """Load, fly, report. Returns (the report, exit code: 0 ok, 130 interrupted)."""
     from sim_bridge.simulate import load_scenario
 
     cfg = load_scenario(config_path)
@@ -517,11 +449,11 @@ def run_fleet(config_path: str | Path, opts: FleetOptions) -> tuple[dict, int]:
     old = signal.signal(signal.SIGINT, on_sigint)
     old_term = signal.signal(signal.SIGTERM, on_sigint)
     try:
-        metrics = fleet.run()
+        report = fleet.run()
     finally:
         signal.signal(signal.SIGINT, old)
         signal.signal(signal.SIGTERM, old_term)
-    return metrics, 130 if fleet.interrupted else 0
+    return report, 130 if fleet.interrupted else 0
 
 
 def parse_kill(items: list[str]) -> dict[int, float]:

@@ -1,18 +1,28 @@
-"""metrics.json: what a run achieved, in SI units, with the must-show checks."""
+"""Scoring a run: what it achieved, in SI units, with the must-show checks (typed in results.py)."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
 
 from companion import frames
 from companion.agent import IN_FORMATION, Phase
-from sim_bridge.launch_study import LaunchComparison, launch_study_json
+from sim_bridge.launch_study import LaunchComparison
 from sim_bridge.record import RunResult
-
-
-def _f(x) -> float | None:
-    return None if x is None or (isinstance(x, float) and math.isnan(x)) else float(x)
+from sim_bridge.results import (
+    Assembly,
+    FormationDeviation,
+    MissionOutcome,
+    ObstacleClearance,
+    Performance,
+    RunMetrics,
+    Separation,
+    Series,
+    Stabilisation,
+    VehicleSettle,
+)
+from sim_bridge.results import finite_or_none as _f
 
 
 def formation_deviation(result: RunResult) -> tuple[np.ndarray, np.ndarray]:
@@ -30,7 +40,7 @@ def formation_deviation(result: RunResult) -> tuple[np.ndarray, np.ndarray]:
     return log["t_s"], np.where(np.isfinite(masked), masked, np.nan)
 
 
-def stabilisation(result: RunResult) -> list[dict]:
+def stabilisation(result: RunResult) -> list[VehicleSettle]:
     """Per vehicle: settle time after release and drift from the release point."""
     cfg = result.cfg.mission.phases
     log = result.log
@@ -40,104 +50,96 @@ def stabilisation(result: RunResult) -> list[dict]:
     calm = (tilt < np.radians(cfg.stable_tilt_deg)) & (speed < cfg.stable_speed_mps)
     rows = []
     for v in range(result.mission.n):
-        t_rel = result.release_s[v]
+        t_rel = float(result.release_s[v])
         t_asm = result.phase_entry_s[v, Phase.ASSEMBLE]
-        entry = {"vehicle": v + 1, "release_s": float(t_rel), "stabilised": not math.isnan(t_asm)}
-        window = np.flatnonzero((t >= t_rel - 1e-9) & (t <= t_asm + 1e-9)) if entry["stabilised"] else []
-        entry["stabilised"] = bool(len(window))  # (a vehicle never released has no window)
-        if len(window):
-            bad = window[~calm[window, v]]
-            k = window[0] if len(bad) == 0 else min(bad[-1] + 1, window[-1])
-            disp = log["pos_ned_m"][k, v] - result.release_pos_ned_m[v]
-            entry.update(
-                settle_time_s=float(t[k] - t_rel),
-                drift_m=float(np.linalg.norm(disp)),
-                drift_horizontal_m=float(np.linalg.norm(disp[:2])),
-                altitude_loss_m=float(max(0.0, disp[2])),
-            )
-        rows.append(entry)
+        # (a vehicle never released has no window)
+        window: np.ndarray | list = np.flatnonzero((t >= t_rel - 1e-9) & (t <= t_asm + 1e-9)) if not math.isnan(t_asm) else []
+        if not len(window):
+            rows.append(VehicleSettle(vehicle=v + 1, release_s=t_rel, stabilised=False))
+            continue
+        bad = window[~calm[window, v]]
+        k = window[0] if len(bad) == 0 else min(bad[-1] + 1, window[-1])
+        disp = log["pos_ned_m"][k, v] - result.release_pos_ned_m[v]
+        rows.append(VehicleSettle(
+            vehicle=v + 1, release_s=t_rel, stabilised=True, settle_time_s=float(t[k] - t_rel),
+            drift_m=float(np.linalg.norm(disp)), drift_horizontal_m=float(np.linalg.norm(disp[:2])),
+            altitude_loss_m=float(max(0.0, disp[2])),
+        ))
     return rows
 
 
-def compute_metrics(result: RunResult, launch_study: list[LaunchComparison] | None) -> dict:
+def _stat(values: list[float], fn) -> float | None:
+    return _f(fn(values)) if values else None
+
+
+def compute_metrics(result: RunResult, launch_study: list[LaunchComparison] | None) -> RunMetrics:
+    """Score one run (headless or fleet) against the paper's figures and the checks."""
     cfg = result.cfg
     t, dev = formation_deviation(result)
     stab = stabilisation(result)
-    settle = [r["settle_time_s"] for r in stab if r["stabilised"]]
-    drift = [r["drift_m"] for r in stab if r["stabilised"]]
-    final_dev = float(dev[-1]) if len(dev) and not math.isnan(dev[-1]) else None
+    settle = [r.settle_time_s for r in stab if r.settle_time_s is not None]
+    drift = [r.drift_m for r in stab if r.drift_m is not None]
     t_go = result.t_go_s
     transit = (t >= t_go) if not math.isnan(t_go) else np.zeros_like(t, dtype=bool)
     s = result.safety
     every = max(1, int(round(cfg.output.log_rate_hz)))  # ~1 Hz series in the JSON
-    m = {
-        "scenario": cfg.name,
-        "seed": cfg.seed,
-        "n_vehicles": result.mission.n,
-        "inner_loop_controller": cfg.inner_loop.controller,
-        "stabilisation": {
-            "all_stabilised": all(r["stabilised"] for r in stab),
-            "max_settle_time_s": _f(max(settle)) if settle else None,
-            "mean_settle_time_s": _f(np.mean(settle)) if settle else None,
-            "max_drift_m": _f(max(drift)) if drift else None,
-            "mean_drift_m": _f(np.mean(drift)) if drift else None,
-            "per_vehicle": stab,
-        },
-        "assembly": {
-            "all_assembled_s": _f(result.t_all_assembled_s),
-            "assembly_time_after_last_release_s": _f(result.t_all_assembled_s - result.release_s.max()),
-            "transit_start_s": _f(t_go),
-            "transit_start_spread_s": _f(result.t_go_spread_s),
-        },
-        "link": result.link,
-        "formation_deviation": {
-            "final_max_m": final_dev,
-            "max_during_transit_m": _f(np.nanmax(dev[transit])) if transit.any() else None,
-            "series_1hz": {"t_s": t[::every].round(3).tolist(), "max_m": [_f(x) for x in dev[::every]]},
-        },
-        "separation": {
-            "safety_distance_m": cfg.safety.separation_m,
-            "min_pair_distance_m": _f(s.min_pair_dist_m),
-            "min_pair_time_s": _f(s.min_pair_time_s),
-            "min_pair_vehicles": [s.min_pair[0] + 1, s.min_pair[1] + 1],
-            "pairs_below_safety_distance": len(s.violating_pairs),
-            "sampled_at_hz": cfg.agent.rate_hz,
-        },
-        "obstacles": {
-            "min_clearance_m": _f(s.min_clearance_m) if math.isfinite(s.min_clearance_m) else None,
-            "min_clearance_time_s": _f(s.min_clearance_time_s),
-            "min_clearance_vehicle": s.min_clearance_vehicle + 1 if s.min_clearance_vehicle >= 0 else None,
-            "margin_m": cfg.safety.obstacle_margin_m,
-        },
-        "mission": {"completed": not math.isnan(result.t_complete_s), "completion_time_s": _f(result.t_complete_s)},
-        "performance": {
-            "wall_s": result.wall_s,
-            "sim_s": result.sim_s,
-            "real_time_factor": result.sim_s / result.wall_s if result.wall_s > 0 else None,
-            "vehicle_steps": result.vehicle_steps,
-            "vehicle_steps_per_s": result.vehicle_steps / result.wall_s if result.wall_s > 0 else None,
-            "physics_rate_hz": cfg.physics.rate_hz,
-            "agent_rate_hz": cfg.agent.rate_hz,
-        },
-    }
-    if launch_study is not None:
-        m["launch_study"] = launch_study_json(launch_study)
-    m["checks"] = _checks(m, cfg)
-    return m
+    m = RunMetrics(
+        scenario=cfg.name, seed=cfg.seed, n_vehicles=result.mission.n,
+        inner_loop_controller=cfg.inner_loop.controller,
+        stabilisation=Stabilisation(
+            all_stabilised=all(r.stabilised for r in stab),
+            max_settle_time_s=_stat(settle, max), mean_settle_time_s=_stat(settle, np.mean),
+            max_drift_m=_stat(drift, max), mean_drift_m=_stat(drift, np.mean), per_vehicle=stab,
+        ),
+        assembly=Assembly(
+            all_assembled_s=_f(result.t_all_assembled_s),
+            assembly_time_after_last_release_s=_f(result.t_all_assembled_s - result.release_s.max()),
+            transit_start_s=_f(t_go), transit_start_spread_s=_f(result.t_go_spread_s),
+        ),
+        link=result.link,
+        formation_deviation=FormationDeviation(
+            final_max_m=_f(dev[-1]) if len(dev) else None,
+            max_during_transit_m=_f(np.nanmax(dev[transit])) if transit.any() else None,
+            series_1hz=Series(t_s=t[::every].round(3).tolist(), max_m=[_f(x) for x in dev[::every]]),
+        ),
+        separation=Separation(
+            safety_distance_m=cfg.safety.separation_m, min_pair_distance_m=_f(s.min_pair_dist_m),
+            min_pair_time_s=_f(s.min_pair_time_s), min_pair_vehicles=[s.min_pair[0] + 1, s.min_pair[1] + 1],
+            pairs_below_safety_distance=len(s.violating_pairs), sampled_at_hz=cfg.agent.rate_hz,
+        ),
+        obstacles=ObstacleClearance(
+            min_clearance_m=_f(s.min_clearance_m) if math.isfinite(s.min_clearance_m) else None,
+            min_clearance_time_s=_f(s.min_clearance_time_s),
+            min_clearance_vehicle=s.min_clearance_vehicle + 1 if s.min_clearance_vehicle >= 0 else None,
+            margin_m=cfg.safety.obstacle_margin_m,
+        ),
+        mission=MissionOutcome(completed=not math.isnan(result.t_complete_s),
+                               completion_time_s=_f(result.t_complete_s)),
+        performance=Performance(
+            wall_s=result.wall_s, sim_s=result.sim_s,
+            real_time_factor=result.sim_s / result.wall_s if result.wall_s > 0 else None,
+            vehicle_steps=result.vehicle_steps,
+            vehicle_steps_per_s=result.vehicle_steps / result.wall_s if result.wall_s > 0 else None,
+            physics_rate_hz=cfg.physics.rate_hz, agent_rate_hz=cfg.agent.rate_hz,
+        ),
+        launch_study=launch_study,
+    )
+    return dataclasses.replace(m, checks=_checks(m, cfg))
 
 
-def _checks(m: dict, cfg) -> dict[str, bool]:
+def _checks(m: RunMetrics, cfg) -> dict[str, bool]:
     """The issue's acceptance criteria, evaluated on this run."""
-    sep, obs = m["separation"], m["obstacles"]
+    clearance = m.obstacles.min_clearance_m
     checks = {
-        "all_stabilised": m["stabilisation"]["all_stabilised"],
-        "mission_completed": m["mission"]["completed"],
-        "final_formation_deviation_below_tol": (m["formation_deviation"]["final_max_m"] or math.inf)
-        < cfg.completion_tol_m,
-        "min_separation_ok": (sep["min_pair_distance_m"] or 0.0) >= cfg.safety.separation_m,
-        "obstacle_clearance_ok": obs["min_clearance_m"] is None or obs["min_clearance_m"] >= cfg.safety.obstacle_margin_m,
+        "all_stabilised": m.stabilisation.all_stabilised,
+        "mission_completed": m.mission.completed,
+        "final_formation_deviation_below_tol": (m.formation_deviation.final_max_m or math.inf) < cfg.completion_tol_m,
+        "min_separation_ok": (m.separation.min_pair_distance_m or 0.0) >= cfg.safety.separation_m,
+        "obstacle_clearance_ok": clearance is None or clearance >= cfg.safety.obstacle_margin_m,
     }
-    ls = m.get("launch_study", {}).get("roll_90", {}).get("geometric")
-    if ls is not None:
-        checks["geometric_roll90_settles_within_1p5s"] = bool(ls["settled"] and ls["settling_time_s"] <= 1.5)
+    roll90 = next((c for c in m.launch_study or [] if c.roll_deg == 90.0), None)
+    if roll90 is not None:
+        g = roll90.geometric
+        checks["geometric_roll90_settles_within_1p5s"] = bool(
+            g.settled and g.settling_time_s is not None and g.settling_time_s <= 1.5)
     return checks

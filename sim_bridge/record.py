@@ -9,6 +9,7 @@ swarm radio. `save_run` / `load_run` carry a RunResult across processes.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 from dataclasses import dataclass, field
@@ -22,6 +23,7 @@ from companion import frames
 from companion.agent import Phase
 from companion.mission import Mission
 from companion.state import FleetSetpoint, FleetState
+from sim_bridge.results import LinkStats
 from sim_bridge.scenario import ScenarioConfig
 
 
@@ -140,8 +142,8 @@ class RunResult:
     wall_s: float
     sim_s: float
     vehicle_steps: int
-    link: dict = field(default_factory=dict)
-    """Neighbour-transport statistics (NeighbourTransport.stats)."""
+    link: LinkStats = field(default_factory=LinkStats)
+    """Neighbour-transport statistics (NeighbourTransport.stats or the SITL's radio medium)."""
 
 
 
@@ -199,7 +201,7 @@ class MissionTracker:
         return not math.isnan(self.t_complete) and t_s >= self.t_complete + self.cfg.completion_hold_s
 
     def result(self, release_s: np.ndarray, release_pos_ned_m: np.ndarray, wall_s: float, sim_s: float,
-               vehicle_steps: int, link: dict) -> "RunResult":
+               vehicle_steps: int, link: LinkStats) -> "RunResult":
         return RunResult(self.cfg, self.mission, self.rec.arrays(), np.asarray(release_s, float),
                          np.asarray(release_pos_ned_m, float), self.phase_entry, self.safety, self.t_go_s,
                          self.t_go_spread_s, self.t_all_assembled, self.t_complete, wall_s, sim_s, vehicle_steps,
@@ -224,7 +226,7 @@ def save_run(result: RunResult, out_dir: Path) -> None:
     save_log(result, out_dir)
     s = result.safety
     info = {name: getattr(result, name) for name in _SCALARS}
-    info["link"] = result.link
+    info["link"] = dataclasses.asdict(result.link)
     info["safety"] = {"separation_m": s.separation_m, "min_pair_dist_m": s.min_pair_dist_m,
                       "min_pair_time_s": s.min_pair_time_s, "min_pair": list(s.min_pair),
                       "violating_pairs": sorted(list(p) for p in s.violating_pairs),
@@ -245,4 +247,4 @@ def load_run(out_dir: Path, cfg: ScenarioConfig) -> RunResult:
     log = {k: v for k, v in data.items() if k not in extra}
     return RunResult(cfg, Mission(cfg.mission), log, data["release_s"], data["release_pos_ned_m"],
                      data["phase_entry_s"], safety, info["t_go_s"], info["t_go_spread_s"], info["t_all_assembled_s"],
-                     info["t_complete_s"], info["wall_s"], info["sim_s"], info["vehicle_steps"], info["link"])
+                     info["t_complete_s"], info["wall_s"], info["sim_s"], info["vehicle_steps"], LinkStats.from_json(info["link"]))

@@ -11,6 +11,7 @@ from sim_bridge.headless import run_scenario
 from sim_bridge.launch_study import run_launch_study
 from sim_bridge.metrics import compute_metrics
 from sim_bridge.record import save_log
+from sim_bridge.results import RunMetrics
 from sim_bridge.scenario import ScenarioConfig
 
 
@@ -24,7 +25,7 @@ def load_scenario(path: str | Path, seed: int | None = None) -> ScenarioConfig:
     return cfg if seed is None else dataclasses.replace(cfg, seed=seed)
 
 
-def simulate(cfg: ScenarioConfig, out_dir: Path, progress: bool = True, figures: bool | None = None) -> dict:
+def simulate(cfg: ScenarioConfig, out_dir: Path, progress: bool = True, figures: bool | None = None) -> RunMetrics:
     """Fly the launch study and the scenario, write the run directory, return metrics.
 
     The run directory holds metrics.json, telemetry.npz (every state of every
@@ -36,7 +37,7 @@ def simulate(cfg: ScenarioConfig, out_dir: Path, progress: bool = True, figures:
     metrics = compute_metrics(result, study)
     (out_dir / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
     save_log(result, out_dir)
-    (out_dir / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    (out_dir / "metrics.json").write_text(json.dumps(metrics.to_json(), indent=2))
     if cfg.output.figures if figures is None else figures:
         write_figures(result, traces, out_dir)
     return metrics
@@ -48,34 +49,32 @@ def _steps(per_s: float | None) -> str:
     return f"{per_s / 1e6:.2f}M" if per_s >= 1e5 else f"{per_s / 1e3:.1f}k"
 
 
-def summary_lines(metrics: dict, out_dir: Path) -> list[str]:
-    s, f, sep = metrics["stabilisation"], metrics["formation_deviation"], metrics["separation"]
-    perf = metrics["performance"]
+def summary_lines(metrics: RunMetrics, out_dir: Path) -> list[str]:
+    """The console summary of a run."""
+    s, f, sep, perf = metrics.stabilisation, metrics.formation_deviation, metrics.separation, metrics.performance
     fmt = lambda x, u="", p=3: "n/a" if x is None else f"{x:.{p}f}{u}"  # noqa: E731
     lines = [
         f"run directory: {out_dir}",
-        f"  vehicles stabilised:   {sum(r['stabilised'] for r in s['per_vehicle'])}/{metrics['n_vehicles']}"
-        f" (max settle {fmt(s['max_settle_time_s'], ' s', 2)}, max drift {fmt(s['max_drift_m'], ' m', 2)})",
-        f"  all assembled at:      {fmt(metrics['assembly']['all_assembled_s'], ' s', 1)};"
-        f" transit start {fmt(metrics['assembly']['transit_start_s'], ' s', 1)}",
-        f"  mission complete at:   {fmt(metrics['mission']['completion_time_s'], ' s', 1)}",
-        f"  final max deviation:   {fmt(f['final_max_m'], ' m', 4)}",
-        f"  min separation:        {fmt(sep['min_pair_distance_m'], ' m')} (UAVs {sep['min_pair_vehicles']},"
-        f" t = {fmt(sep['min_pair_time_s'], ' s', 1)}); pairs < {sep['safety_distance_m']} m: {sep['pairs_below_safety_distance']}",
-        f"  min obstacle clearance:{fmt(metrics['obstacles']['min_clearance_m'], ' m')}",
-        f"  speed:                 {fmt(perf['real_time_factor'], 'x real time', 1)},"
-        f" {_steps(perf['vehicle_steps_per_s'])} vehicle-steps/s",
+        f"  vehicles stabilised:   {sum(r.stabilised for r in s.per_vehicle)}/{metrics.n_vehicles}"
+        f" (max settle {fmt(s.max_settle_time_s, ' s', 2)}, max drift {fmt(s.max_drift_m, ' m', 2)})",
+        f"  all assembled at:      {fmt(metrics.assembly.all_assembled_s, ' s', 1)};"
+        f" transit start {fmt(metrics.assembly.transit_start_s, ' s', 1)}",
+        f"  mission complete at:   {fmt(metrics.mission.completion_time_s, ' s', 1)}",
+        f"  final max deviation:   {fmt(f.final_max_m, ' m', 4)}",
+        f"  min separation:        {fmt(sep.min_pair_distance_m, ' m')} (UAVs {sep.min_pair_vehicles},"
+        f" t = {fmt(sep.min_pair_time_s, ' s', 1)}); pairs < {sep.safety_distance_m} m: {sep.pairs_below_safety_distance}",
+        f"  min obstacle clearance:{fmt(metrics.obstacles.min_clearance_m, ' m')}",
+        f"  speed:                 {fmt(perf.real_time_factor, 'x real time', 1)},"
+        f" {_steps(perf.vehicle_steps_per_s)} vehicle-steps/s",
     ]
-    ls = metrics.get("launch_study")
-    if ls:
-        for case, m in ls.items():
-            g, p, r = m["geometric"], m["pid"], m["pid_over_geometric"]
-            lines.append(
-                f"  launch {case.replace('_', ' ')} deg: geometric settles {fmt(g['settling_time_s'], ' s', 2)},"
-                f" drift {fmt(g['drift_m'], ' m', 2)}; PID {fmt(p['settling_time_s'], ' s', 2)},"
-                f" drift {fmt(p['drift_m'], ' m', 2)} (PID/geometric: settle {fmt(r['settling_time_s'], 'x', 2)},"
-                f" drift {fmt(r['drift_m'], 'x', 2)})"
-            )
-    for name, ok in metrics["checks"].items():
+    for c in metrics.launch_study or []:
+        g, p, r = c.geometric, c.pid, c.pid_over_geometric
+        lines.append(
+            f"  launch roll {c.roll_deg:g} deg: geometric settles {fmt(g.settling_time_s, ' s', 2)},"
+            f" drift {fmt(g.drift_m, ' m', 2)}; PID {fmt(p.settling_time_s, ' s', 2)},"
+            f" drift {fmt(p.drift_m, ' m', 2)} (PID/geometric: settle {fmt(r.get('settling_time_s'), 'x', 2)},"
+            f" drift {fmt(r.get('drift_m'), 'x', 2)})"
+        )
+    for name, ok in metrics.checks.items():
         lines.append(f"  [{'PASS' if ok else 'FAIL'}] {name}")
     return lines

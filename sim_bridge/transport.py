@@ -18,6 +18,7 @@ from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT
 from companion.swarm import SwarmStates, SwarmView
+from sim_bridge.results import AgeSummary, LinkStats
 
 _MASK64 = np.uint64(0xFFFFFFFFFFFFFFFF)
 
@@ -112,13 +113,14 @@ class AgeHistogram:
         np.add.at(self.counts, idx, weight)
         self.total_s += float(a.sum()) * weight
 
-    def summary(self) -> dict:
+    def summary(self) -> AgeSummary:
         n = int(self.counts.sum())
         if n == 0:
-            return {"count": 0}
+            return AgeSummary()
         cum = np.cumsum(self.counts)
         pct = {f"p{p}": float(np.searchsorted(cum, p / 100.0 * n) * self.BIN_S) for p in (50, 90, 99)}
-        return {"count": n, "mean": self.total_s / n, **pct, "max": float(np.flatnonzero(self.counts)[-1] * self.BIN_S)}
+        return AgeSummary(count=n, mean=self.total_s / n, **pct,
+                          max=float(np.flatnonzero(self.counts)[-1] * self.BIN_S))
 
 
 class NeighbourTransport:
@@ -138,10 +140,10 @@ class NeighbourTransport:
         """Put every copy due by t_s into view (receiver row = vehicle id)."""
         raise NotImplementedError
 
-    def stats(self) -> dict:
-        return {"copies_sent": self.sent, "copies_delivered": self.delivered,
-                "delivered_fraction": self.delivered / self.sent if self.sent else None,
-                "age_at_delivery_s": self._ages.summary()}
+    def stats(self) -> LinkStats:
+        return LinkStats(copies_sent=self.sent, copies_delivered=self.delivered,
+                         delivered_fraction=self.delivered / self.sent if self.sent else None,
+                         age_at_delivery_s=self._ages.summary())
 
 
 class PerfectTransport(NeighbourTransport):

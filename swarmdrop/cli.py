@@ -28,14 +28,15 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
     print("\n".join(summary_lines(metrics, out)))
-    if args.check and not all(metrics["checks"].values()):
+    if args.check and not metrics.passed:
         return 1
     return 0
 
 
 def _cmd_run(args: argparse.Namespace) -> int:
     from companion.config import ConfigError
-    from sim_bridge.fleet import FleetOptions, parse_kill, run_fleet, summary_lines
+    from sim_bridge.fleet import FleetOptions, parse_kill, run_fleet
+    from sim_bridge.fleet_report import summary_lines
 
     out = Path(args.out) if args.out else Path("runs") / (Path(args.config).stem + "_fleet")
     try:
@@ -43,14 +44,14 @@ def _cmd_run(args: argparse.Namespace) -> int:
                             base_port=args.base_port, rate_hz=args.rate, kill=parse_kill(args.kill_agent),
                             fix_delay_max_s=args.fix_delay_max, progress=not args.quiet,
                             figures=not args.no_figures, agent_nice=args.agent_nice, signing=args.signing)
-        metrics, code = run_fleet(args.config, opts)
+        report, code = run_fleet(args.config, opts)
     except (ConfigError, ValueError, OSError, RuntimeError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    print("\n".join(summary_lines(metrics, out)))
+    print("\n".join(summary_lines(report, out)))
     if code:
         return code
-    if args.check and not all(metrics["checks"].values()):
+    if args.check and not report.passed:
         return 1
     return 0
 

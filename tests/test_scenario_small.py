@@ -20,16 +20,16 @@ def run(tmp_path_factory):
 
 def test_everyone_stabilises_and_formation_is_reached(run):
     cfg, m, _ = run
-    assert m["stabilisation"]["all_stabilised"]
-    assert m["mission"]["completed"], m["mission"]
-    assert m["formation_deviation"]["final_max_m"] < cfg.completion_tol_m
+    assert m.stabilisation.all_stabilised
+    assert m.mission.completed, m.mission
+    assert m.formation_deviation.final_max_m < cfg.completion_tol_m
 
 
 def test_no_separation_violation_and_obstacle_clearance(run):
     cfg, m, _ = run
-    assert m["separation"]["pairs_below_safety_distance"] == 0
-    assert m["separation"]["min_pair_distance_m"] >= cfg.safety.separation_m
-    assert m["obstacles"]["min_clearance_m"] >= cfg.safety.obstacle_margin_m
+    assert m.separation.pairs_below_safety_distance == 0
+    assert m.separation.min_pair_distance_m >= cfg.safety.separation_m
+    assert m.obstacles.min_clearance_m >= cfg.safety.obstacle_margin_m
 
 
 def test_obstacle_actually_deflected_someone(run):
@@ -40,15 +40,15 @@ def test_obstacle_actually_deflected_someone(run):
     r = cfg.mission.obstacles[0].radius_m
     slot_gap = np.linalg.norm(log["slot_ned_m"] - c, axis=2) - r
     assert slot_gap.min() < 0, "test scenario no longer puts a slot path through the obstacle"
-    assert m["obstacles"]["min_clearance_m"] > 0
+    assert m.obstacles.min_clearance_m > 0
 
 
 def test_run_directory_contents(run):
     _, m, out = run
     on_disk = json.loads((out / "metrics.json").read_text())
-    assert on_disk["checks"] == m["checks"] and all(m["checks"].values())
+    assert on_disk == m.to_json() and m.passed and m.checks
     log = np.load(out / "telemetry.npz")
-    n = m["n_vehicles"]
+    n = m.n_vehicles
     assert log["pos_ned_m"].shape[1:] == (n, 3) and log["att_q_wxyz"].shape[1:] == (n, 4)
     np.testing.assert_allclose(np.linalg.norm(log["att_q_wxyz"], axis=2), 1.0, atol=1e-5)
     for name in ("fig5_trajectories_3d", "fig6_attitude_recovery", "fig7_formation_assembly",
@@ -74,11 +74,11 @@ def test_lossy_delayed_link_still_converges_without_collision():
     from sim_bridge.transport import LinkConfig
 
     m = _fly(link=LinkConfig(kind="lossy", loss=0.2, delay_s=0.1, jitter_s=0.04))
-    assert all(m["checks"].values()), m["checks"]
-    link = m["link"]
-    assert 0.75 < link["delivered_fraction"] < 0.85
-    assert 0.1 <= link["age_at_delivery_s"]["p50"] <= 0.16
-    assert m["assembly"]["transit_start_spread_s"] == 0.0  # every vehicle holds the same t_go
+    assert m.passed, m.checks
+    link = m.link
+    assert 0.75 < link.delivered_fraction < 0.85
+    assert 0.1 <= link.age_at_delivery_s.p50 <= 0.16
+    assert m.assembly.transit_start_spread_s == 0.0  # every vehicle holds the same t_go
 
 
 def test_state_setpoints_fly_the_mission_as_well_as_acceleration_only(run):
@@ -89,9 +89,9 @@ def test_state_setpoints_fly_the_mission_as_well_as_acceleration_only(run):
     assert cfg.mission.setpoint.kind == "state"
     mission = dataclasses.replace(cfg.mission, setpoint=dataclasses.replace(cfg.mission.setpoint, kind="acceleration"))
     m_acc = _fly(mission=mission)
-    assert all(m_acc["checks"].values())
-    dev_s, dev_a = m_state["formation_deviation"], m_acc["formation_deviation"]
-    assert dev_s["final_max_m"] < cfg.completion_tol_m
-    assert dev_s["max_during_transit_m"] <= 1.25 * dev_a["max_during_transit_m"] + 0.05
-    assert m_state["separation"]["min_pair_distance_m"] >= 0.9 * m_acc["separation"]["min_pair_distance_m"]
-    assert m_state["mission"]["completion_time_s"] <= m_acc["mission"]["completion_time_s"] + 5.0
+    assert m_acc.passed
+    dev_s, dev_a = m_state.formation_deviation, m_acc.formation_deviation
+    assert dev_s.final_max_m < cfg.completion_tol_m
+    assert dev_s.max_during_transit_m <= 1.25 * dev_a.max_during_transit_m + 0.05
+    assert m_state.separation.min_pair_distance_m >= 0.9 * m_acc.separation.min_pair_distance_m
+    assert m_state.mission.completion_time_s <= m_acc.mission.completion_time_s + 5.0

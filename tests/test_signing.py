@@ -208,7 +208,7 @@ def test_sitl_with_signing_required_ignores_unsigned_forged_and_replayed(key_fil
         # and the signed client still commands it
         c.mav.command_long_send(1, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0)
         assert c.wait("COMMAND_ACK", lambda m: m.command == 400 and m.result == 0, 3) is not None
-        assert server.signing_stats()["0"]["replayed"] >= 2
+        assert server.signing_stats()["0"].replayed >= 2
     finally:
         c.close()
         bg.stop()

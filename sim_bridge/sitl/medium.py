@@ -23,6 +23,7 @@ import numpy as np
 from companion.link.endpoints import UdpLink
 from companion.link.msgdef import swarmdrop as sd
 from companion.link.wire import Codec, FrameError
+from sim_bridge.results import LinkStats, MeanMax
 from sim_bridge.transport import AgeHistogram, LinkConfig, RadioModel
 
 MAX_DATAGRAM_BYTES = 1400
@@ -180,19 +181,20 @@ class Medium:
         self.copies_delivered += n_due
         return n_due
 
-    def stats(self, sim_s: float) -> dict:
+    def stats(self, sim_s: float) -> LinkStats:
         """Link statistics for metrics.json (bytes/s per vehicle over the simulated time)."""
         dur = max(sim_s, 1e-9)
         per_vehicle = self.bytes_in / dur
-        return {
-            "kind": self.radio.cfg.kind, "loss": self.radio.cfg.loss, "delay_s": self.radio.cfg.delay_s,
-            "jitter_s": self.radio.cfg.jitter_s,
-            "bytes_per_s_per_vehicle": {"mean": float(per_vehicle.mean()), "max": float(per_vehicle.max())},
-            "states_received": int(self.states_in.sum()), "copies_sent": self.copies_sent,
-            "copies_delivered": self.copies_delivered, "copies_lost": self.copies_lost,
-            "bad_frames": self.bad_frames, "foreign_frames": self.foreign,
-            "age_at_delivery_s": self.ages.summary(),
-        }
+        return LinkStats(
+            kind=self.radio.cfg.kind, loss=self.radio.cfg.loss, delay_s=self.radio.cfg.delay_s,
+            jitter_s=self.radio.cfg.jitter_s,
+            bytes_per_s_per_vehicle=MeanMax(mean=float(per_vehicle.mean()), max=float(per_vehicle.max())),
+            states_received=int(self.states_in.sum()), copies_sent=self.copies_sent,
+            copies_delivered=self.copies_delivered,
+            delivered_fraction=self.copies_delivered / self.copies_sent if self.copies_sent else None,
+            copies_lost=self.copies_lost, bad_frames=self.bad_frames, foreign_frames=self.foreign,
+            age_at_delivery_s=self.ages.summary(),
+        )
 
     def close(self) -> None:
         self.link.close()

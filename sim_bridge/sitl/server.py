@@ -33,7 +33,7 @@ from companion.frames import geodetic_to_ned, integrate_quat_body_rates  # noqa:
 from companion.link.dialects import Mode, dialect_named  # noqa: E402
 from companion.link.endpoints import MavEndpoint, UdpLink  # noqa: E402
 from companion.link.msgdef import swarmdrop  # noqa: E402
-from companion.link.signing import Signing, SigningError, TimestampStore, load_key  # noqa: E402
+from companion.link.signing import Signing, SigningCounters, SigningError, TimestampStore, load_key  # noqa: E402
 from companion.link.tlog import Tlog  # noqa: E402
 from companion.link.wire import Codec  # noqa: E402
 from companion.mission import Mission  # noqa: E402
@@ -43,7 +43,8 @@ from companion.swarm import FLAG_ASSEMBLED, swarm_due  # noqa: E402
 from sim_bridge.carrier import carrier_position_ned_m, release_times_s, sample_release_attitudes  # noqa: E402
 from sim_bridge.physics import Physics  # noqa: E402
 from sim_bridge.record import MissionTracker, RunResult  # noqa: E402
-from sim_bridge.record import warm_up as warm_up_tracker
+from sim_bridge.record import warm_up as warm_up_tracker  # noqa: E402
+from sim_bridge.results import LinkStats  # noqa: E402
 from sim_bridge.sitl.autopilot import Autopilot  # noqa: E402
 from sim_bridge.sitl.config import SitlConfig  # noqa: E402
 from sim_bridge.sitl.handler import MessageRouter  # noqa: E402
@@ -192,7 +193,7 @@ class SitlServer:
             log_every = max(1, int(round(1.0 / (scenario.output.log_rate_hz * tc.tick_s))))
             self.tracker = MissionTracker(scenario, Mission(scenario.mission), log_every)
         self.mission_done = False
-        self._link_at_done: dict | None = None
+        self._link_at_done: LinkStats | None = None
         self._sign_store: TimestampStore | None = None
         self._sign_key = b""
         if cfg.signing.mode != "off":  # a bad key is a configuration error, before any port opens
@@ -413,7 +414,7 @@ class SitlServer:
         if self.tracker is None or not self.tracker.rec.t_s:
             return None
         wall = 0.0 if self.wall_started is None else self.wall_clock() - self.wall_started
-        link = self._link_at_done or (self.medium.stats(self.sim_s) if self.medium is not None else {})
+        link = self._link_at_done or (self.medium.stats(self.sim_s) if self.medium is not None else LinkStats())
         rel_s = np.where(np.isnan(self.released_at_s), np.inf, self.released_at_s)
         return self.tracker.result(rel_s, self.released_pos_ned_m, wall, self.sim_s, self.vehicle_steps, link)
 
@@ -507,12 +508,12 @@ class SitlServer:
         return Signing(sc.mode, self._sign_key, link_id=link_id & 0xFF, store=self._sign_store,
                        crc_extra=self.codec.crc_extra)
 
-    def signing_stats(self) -> dict:
-        """Per endpoint (vehicle index, or "gcs"): what signing dropped."""
+    def signing_stats(self) -> dict[str, SigningCounters]:
+        """Per endpoint (vehicle index, or "gcs"): what signing dropped (a copy)."""
         out = {}
         for name, ep in [(str(k), e) for k, e in enumerate(self.endpoints)] + ([("gcs", self.gcs)] if self.gcs else []):
             if ep.signing is not None:
-                out[name] = dataclasses.asdict(ep.signing.counters)
+                out[name] = dataclasses.replace(ep.signing.counters)
         return out
 
     def _on_readable(self, ep: MavEndpoint, k: int | None) -> None:
