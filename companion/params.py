@@ -18,9 +18,12 @@ GRAVITY_MPS2 = 9.80665
 
 @dataclass(config=STRICT)
 class VehicleParams:
-    """Rigid-body and rotor parameters of one quadrotor (plus configuration, eq. 6).
+    """Rigid-body and rotor parameters of one quadrotor.
 
-    Rotor k sits at d on body axis (+x, +y, -x, -y) for k = 1..4 as in eq. 6's mixer.
+    frame "x" (default, the real Crazyflie 2.0): rotor k = 1..4 sits at arm_length_m on the
+    body diagonals front-right, back-right, back-left, front-left. frame "plus" (the paper's
+    eq. 6): rotor k on body axis +x, +y, -x, -y. Rotors 1 and 3 spin clockwise seen from
+    above in both (docs/vehicle.md).
     """
 
     mass_kg: float = Field(default=0.030, gt=0)
@@ -28,6 +31,8 @@ class VehicleParams:
     inertia_yy_kgm2: float = Field(default=1.43e-5, gt=0)
     inertia_zz_kgm2: float = Field(default=2.89e-5, gt=0)
     arm_length_m: float = Field(default=0.043, gt=0)
+    """Centre-to-rotor distance d."""
+    frame: Literal["x", "plus"] = "x"
     thrust_coeff_n_per_radps2: float = Field(default=2.3e-8, gt=0)
     """k_f in eq. 6: rotor thrust = k_f * Q**2."""
     torque_to_thrust_m: float = Field(default=0.0339, gt=0)
@@ -56,6 +61,12 @@ class GeometricGains:
     tilt_max_deg: float = Field(default=50.0, gt=0, le=89.0)
     acc_max_mps2: float = Field(default=12.0, gt=0)
     """Norm limit on the commanded acceleration before thrust/tilt saturation."""
+    large_angle: bool = True
+    """Tilt-first attitude error that does not vanish near 180 deg, and thrust scheduled by
+    where body z points (docs/controllers.md, "Large angles"); False flies the paper's
+    eq. 7-14 verbatim. The two agree to first order near hover."""
+    yaw_error_max_rad: float = Field(default=0.6, gt=0)
+    """Large-angle law: the yaw part of the attitude error is clipped to this."""
 
 
 @dataclass(config=STRICT)

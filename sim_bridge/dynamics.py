@@ -1,12 +1,13 @@
 """Quadrotor rigid-body dynamics, paper eq. 1-6, NED world / FRD body.
 
-Mixer geometry (eq. 6, "plus" configuration): rotor k = 1..4 sits at distance d on body
-axis +x (front), +y (right), -x (back), -y (left). Rotor k produces thrust T_k = k_f Q_k^2
-along -b3 and a reaction torque -/+ c T_k about b3: rotors 1 and 3 spin clockwise seen
-from above (about +b3, reaction -c T_k), rotors 2 and 4 counter-clockwise (+c T_k).
+Mixer geometry: rotor k = 1..4 sits at (x_k, y_k) in the body plane, at distance d from
+the centre: on the axes +x, +y, -x, -y for the paper's "plus" frame (eq. 6), on the
+diagonals front-right, back-right, back-left, front-left for the "x" frame of the real
+Crazyflie. Rotor k produces thrust T_k = k_f Q_k^2 along -b3 and a reaction torque
+s_k c T_k about b3 with s = (-1, +1, -1, +1): rotors 1 and 3 spin clockwise seen from above.
 With r x (-T b3): rotor at (x, y, 0) gives moment (-y T, x T, 0), hence
-    M1 = d (T4 - T2), M2 = d (T1 - T3), M3 = c (-T1 + T2 - T3 + T4),
-exactly the matrix of eq. 6.
+    M1 = sum(-y_k T_k), M2 = sum(x_k T_k), M3 = c sum(s_k T_k);
+for the plus frame M1 = d (T4 - T2), M2 = d (T1 - T3): exactly the matrix of eq. 6.
 
 Integrator (per step of length h, wrench held constant over the step):
     * rotors: first-order lag discretised exactly, Q1 = Qc + (Q0 - Qc) exp(-h/tau); the
@@ -36,7 +37,19 @@ add, cross, exp_so3, load_mat, matmul, mul, scale, store_mat = (
 
 VP_MASS, VP_G, VP_JXX, VP_JYY, VP_JZZ, VP_ARM, VP_KF, VP_CTF = 0, 1, 2, 3, 4, 5, 6, 7
 VP_QMIN, VP_QMAX, VP_TAU, VP_DRAG = 8, 9, 10, 11
-N_VP = 12
+VP_ROLL_ARM, VP_PITCH_ARM = 12, 16
+"""Per rotor k (4 values each): its roll lever -y_k and pitch lever x_k, m."""
+N_VP = 20
+YAW_SIGN = (-1.0, 1.0, -1.0, 1.0)
+
+
+def rotor_positions_m(vp: VehicleParams) -> np.ndarray:
+    """(4, 2) body-plane (x, y) of rotors 1..4, FRD, m (see the module docstring)."""
+    d = vp.arm_length_m
+    if vp.frame == "plus":
+        return np.array([[d, 0.0], [0.0, d], [-d, 0.0], [0.0, -d]])
+    h = d / math.sqrt(2.0)
+    return np.array([[h, h], [-h, h], [-h, -h], [h, -h]])
 
 
 def pack_vehicle_params(vp: VehicleParams) -> np.ndarray:
@@ -47,6 +60,9 @@ def pack_vehicle_params(vp: VehicleParams) -> np.ndarray:
     p[VP_ARM], p[VP_KF], p[VP_CTF] = vp.arm_length_m, vp.thrust_coeff_n_per_radps2, vp.torque_to_thrust_m
     p[VP_QMIN], p[VP_QMAX] = vp.rotor_speed_min_radps, vp.rotor_speed_max_radps
     p[VP_TAU], p[VP_DRAG] = vp.motor_time_constant_s, vp.drag_coeff_n_per_mps
+    xy = rotor_positions_m(vp)
+    p[VP_ROLL_ARM:VP_ROLL_ARM + 4] = -xy[:, 1]
+    p[VP_PITCH_ARM:VP_PITCH_ARM + 4] = xy[:, 0]
     return p
 
 
@@ -61,9 +77,11 @@ def motor_coeffs(tau_s: float, dt_s: float) -> tuple[float, float, float]:
 
 @njit(cache=True)
 def mixer(t1, t2, t3, t4, vp):
-    """eq. 6 on rotor thrusts T_k = k_f Q_k^2 (N): returns (f, (M1, M2, M3))."""
-    d, c = vp[VP_ARM], vp[VP_CTF]
-    return t1 + t2 + t3 + t4, (d * (t4 - t2), d * (t1 - t3), c * (-t1 + t2 - t3 + t4))
+    """eq. 6 (generalised to the frame) on rotor thrusts T_k = k_f Q_k^2 (N): (f, (M1, M2, M3))."""
+    c, r, p = vp[VP_CTF], VP_ROLL_ARM, VP_PITCH_ARM
+    return t1 + t2 + t3 + t4, (vp[r] * t1 + vp[r + 1] * t2 + vp[r + 2] * t3 + vp[r + 3] * t4,
+                               vp[p] * t1 + vp[p + 1] * t2 + vp[p + 2] * t3 + vp[p + 3] * t4,
+                               c * (-t1 + t2 - t3 + t4))
 
 
 @njit(cache=True)
@@ -82,22 +100,29 @@ def allocate(f, m, vp):
     d, c, kf = vp[VP_ARM], vp[VP_CTF], vp[VP_KF]
     tmin, tmax = kf * vp[VP_QMIN] ** 2, kf * vp[VP_QMAX] ** 2
     rng = tmax - tmin
-    a, b, y = m[1] / (2.0 * d), -m[0] / (2.0 * d), m[2] / (4.0 * c)
-    if _spread(a - y, b + y, -a - y, -b + y) > rng:
-        s_rp = _spread(a, b, -a, -b)
+    # The levers of either frame are orthogonal with sum of squares 2 d^2 per axis, so the
+    # exact inverse is T_k = f/4 + (roll_k M1 + pitch_k M2) / (2 d^2) + s_k M3 / (4 c).
+    s2, r, p = 2.0 * d * d, VP_ROLL_ARM, VP_PITCH_ARM
+    a = (vp[r] * m[0] + vp[p] * m[1]) / s2
+    b = (vp[r + 1] * m[0] + vp[p + 1] * m[1]) / s2
+    e = (vp[r + 2] * m[0] + vp[p + 2] * m[1]) / s2
+    g = (vp[r + 3] * m[0] + vp[p + 3] * m[1]) / s2
+    y = m[2] / (4.0 * c)
+    if _spread(a - y, b + y, e - y, g + y) > rng:
+        s_rp = _spread(a, b, e, g)
         if s_rp >= rng:
             k = rng / s_rp
-            a, b, y = a * k, b * k, 0.0
+            a, b, e, g, y = a * k, b * k, e * k, g * k, 0.0
         else:  # bisection on the yaw share; spread is monotone in |y| here
             lo, hi = 0.0, 1.0
             for _ in range(30):
                 mid = 0.5 * (lo + hi)
-                if _spread(a - mid * y, b + mid * y, -a - mid * y, -b + mid * y) > rng:
+                if _spread(a - mid * y, b + mid * y, e - mid * y, g + mid * y) > rng:
                     hi = mid
                 else:
                     lo = mid
             y = lo * y
-    d1, d2, d3, d4 = a - y, b + y, -a - y, -b + y
+    d1, d2, d3, d4 = a - y, b + y, e - y, g + y
     lo_c = tmin - min(min(d1, d2), min(d3, d4))
     hi_c = tmax - max(max(d1, d2), max(d3, d4))
     c0 = min(max(0.25 * f, lo_c), hi_c)
@@ -203,22 +228,23 @@ def _allocate_batch(f, m, vp, out):
 
 # ----------------------------------------------------------------------------- numpy wrappers
 
+def mixer_matrix(vp: VehicleParams) -> np.ndarray:
+    """(4, 4) matrix of eq. 6 for the vehicle's frame: (f, M1, M2, M3) = A @ (T1..T4)."""
+    xy = rotor_positions_m(vp)
+    return np.stack([np.ones(4), -xy[:, 1], xy[:, 0], vp.torque_to_thrust_m * np.asarray(YAW_SIGN)])
+
+
 def mixer_np(rotor_speed_radps: np.ndarray, vp: VehicleParams) -> tuple[np.ndarray, np.ndarray]:
     """eq. 6: (N, 4) rotor speeds -> thrust_n (N,), moment_body_nm (N, 3)."""
     t = vp.thrust_coeff_n_per_radps2 * np.asarray(rotor_speed_radps, float) ** 2
-    d, c = vp.arm_length_m, vp.torque_to_thrust_m
-    m = np.stack([d * (t[:, 3] - t[:, 1]), d * (t[:, 0] - t[:, 2]),
-                  c * (-t[:, 0] + t[:, 1] - t[:, 2] + t[:, 3])], axis=1)
-    return t.sum(axis=1), m
+    w = t @ mixer_matrix(vp).T
+    return w[:, 0], w[:, 1:]
 
 
 def inverse_mixer_np(thrust_n: np.ndarray, moment_body_nm: np.ndarray, vp: VehicleParams) -> np.ndarray:
     """Exact inverse of eq. 6 (no limits): rotor thrusts (N, 4) in newtons (may be negative)."""
-    f = np.asarray(thrust_n, float)
-    m = np.asarray(moment_body_nm, float)
-    d, c = vp.arm_length_m, vp.torque_to_thrust_m
-    a, b, y = m[:, 1] / (2 * d), -m[:, 0] / (2 * d), m[:, 2] / (4 * c)
-    return np.stack([f / 4 + a - y, f / 4 + b + y, f / 4 - a - y, f / 4 - b + y], axis=1)
+    w = np.column_stack([np.asarray(thrust_n, float), np.asarray(moment_body_nm, float)])
+    return np.linalg.solve(mixer_matrix(vp), w.T).T
 
 
 def allocate_np(thrust_n: np.ndarray, moment_body_nm: np.ndarray, vp: VehicleParams) -> np.ndarray:

@@ -25,24 +25,51 @@ def test_hover_equilibrium_open_loop():
     np.testing.assert_allclose(st.rot_body_to_ned, np.broadcast_to(np.eye(3), (3, 3, 3)), atol=1e-12)
 
 
-def test_mixer_geometry_signs():
-    """Front rotor (1) harder -> nose up (+M2); right rotor (2) harder -> left wing down (-M1)."""
+def test_mixer_geometry_signs_plus_frame_is_eq6():
+    """Plus frame: front rotor (1) harder -> nose up (+M2); right rotor (2) harder -> left wing down (-M1)."""
+    vp = VehicleParams(frame="plus")
     q = np.full((2, 4), 1500.0)
     q[0, 0] += 100
     q[1, 1] += 100
-    _, m = mixer_np(q, VP)
+    _, m = mixer_np(q, vp)
     assert m[0, 1] > 0 and abs(m[0, 0]) < 1e-15 and m[0, 2] < 0
     assert m[1, 0] < 0 and abs(m[1, 1]) < 1e-15 and m[1, 2] > 0
+    d, c = vp.arm_length_m, vp.torque_to_thrust_m  # eq. 6's matrix, verbatim
+    a = np.array([[1, 1, 1, 1], [0, -d, 0, d], [d, 0, -d, 0], [-c, c, -c, c]])
+    t = vp.thrust_coeff_n_per_radps2 * q ** 2
+    f, m = mixer_np(q, vp)
+    np.testing.assert_allclose(np.column_stack([f, m]), t @ a.T, rtol=1e-12)
 
 
-def test_mixer_inverse_round_trip():
+def test_mixer_geometry_signs_x_frame():
+    """X frame: front-right rotor (1) harder -> nose up and left wing down; rotors 1, 3 clockwise."""
+    q = np.full((1, 4), 1500.0)
+    q[0, 0] += 100
+    _, m = mixer_np(q, VP)
+    assert VP.frame == "x" and m[0, 1] > 0 and m[0, 0] < 0 and np.isclose(-m[0, 0], m[0, 1]) and m[0, 2] < 0
+
+
+def test_x_frame_has_sqrt2_more_roll_and_pitch_authority_than_plus():
+    """At saturation (two rotors full, two off) the X frame rolls with 2 d/sqrt(2) T_max, the plus
+    frame with d T_max: the real Crazyflie has sqrt(2) times the plus model's authority."""
+    qmax = VP.rotor_speed_max_radps
+    _, m_x = mixer_np(np.array([[0.0, 0.0, qmax, qmax]]), VP)           # left pair full: roll right
+    _, m_p = mixer_np(np.array([[0.0, 0.0, 0.0, qmax]]), VehicleParams(frame="plus"))
+    t_max = VP.thrust_coeff_n_per_radps2 * qmax ** 2
+    assert np.isclose(m_x[0, 0], np.sqrt(2.0) * VP.arm_length_m * t_max)
+    assert np.isclose(m_x[0, 0] / m_p[0, 0], np.sqrt(2.0))
+
+
+@pytest.mark.parametrize("frame", ["x", "plus"])
+def test_mixer_inverse_round_trip(frame):
+    vp = VehicleParams(frame=frame)
     rng = np.random.default_rng(3)
     q = rng.uniform(800, 2400, size=(100, 4))
-    f, m = mixer_np(q, VP)
-    t = inverse_mixer_np(f, m, VP)
-    np.testing.assert_allclose(np.sqrt(t / VP.thrust_coeff_n_per_radps2), q, rtol=1e-10)
+    f, m = mixer_np(q, vp)
+    t = inverse_mixer_np(f, m, vp)
+    np.testing.assert_allclose(np.sqrt(t / vp.thrust_coeff_n_per_radps2), q, rtol=1e-10)
     # the saturating allocator is the exact inverse whenever the wrench is feasible
-    np.testing.assert_allclose(allocate_np(f, m, VP), q, rtol=1e-9)
+    np.testing.assert_allclose(allocate_np(f, m, vp), q, rtol=1e-9)
 
 
 def test_rotor_saturation_limits_thrust():
