@@ -40,7 +40,7 @@ def fly_launch(cfg: ScenarioConfig, controller: str, roll_deg: float) -> LaunchT
     dt = 1.0 / cfg.physics.rate_hz
     phys = Physics(cfg.vehicle, inner, dt_s=dt, wind=None, ground_z_m=None, rng=np.random.default_rng(0))
     st = FleetState.zeros(1)
-    st.pos_ned_m[0] = [0.0, 0.0, -30.0]
+    st.pos_ned_m[0] = [0.0, 0.0, -study.release_height_m]
     st.vel_ned_mps[0] = [study.speed_mps, 0.0, 0.0]
     st.rot_body_to_ned[0] = frames.euler_zyx_to_rot(np.radians(roll_deg), 0.0, 0.0)
     st.rotor_speed_radps[0] = hover_rotor_speed_radps(cfg.vehicle)
@@ -85,7 +85,8 @@ class LaunchOutcome:
 @dataclass(frozen=True)
 class LaunchComparison:
     """Both controllers on the same release; pid_over_geometric: PID's figure over the
-    geometric controller's, for settling time, drift and lateral speed (None if undefined)."""
+    geometric controller's, for settling time, drift, height lost and lateral speed (None if
+    undefined); above 1 the geometric controller is better."""
 
     roll_deg: float
     geometric: LaunchOutcome
@@ -95,6 +96,15 @@ class LaunchComparison:
     @property
     def key(self) -> str:
         return f"roll_{self.roll_deg:g}"
+
+    def geometric_beats_pid(self) -> bool:
+        """Geometric settles, and sooner, with less drift and less height lost than PID."""
+        g, p = self.geometric, self.pid
+        if not g.settled or g.settling_time_s is None or g.drift_m is None:
+            return False
+        if not p.settled or p.settling_time_s is None or p.drift_m is None:
+            return True
+        return g.settling_time_s < p.settling_time_s and g.drift_m < p.drift_m and g.altitude_loss_m < p.altitude_loss_m
 
     def to_json(self) -> dict:
         return {"geometric": dataclasses.asdict(self.geometric), "pid": dataclasses.asdict(self.pid),
@@ -135,7 +145,7 @@ def run_launch_study(cfg: ScenarioConfig) -> tuple[list[LaunchComparison], dict[
         pair = {c: fly_launch(cfg, c, roll) for c in ("geometric", "pid")}
         g, p = launch_metrics(pair["geometric"], study), launch_metrics(pair["pid"], study)
         ratios: dict[str, float | None] = {}
-        for key in ("settling_time_s", "drift_m", "max_lateral_speed_mps"):
+        for key in ("settling_time_s", "drift_m", "altitude_loss_m", "max_lateral_speed_mps"):
             gv, pv = getattr(g, key), getattr(p, key)
             ratios[key] = None if (gv is None or pv is None or gv == 0) else pv / gv
         out.append(LaunchComparison(float(roll), g, p, ratios))

@@ -8,6 +8,7 @@ import numpy as np
 
 from companion import frames
 from companion.agent import IN_FORMATION, Phase
+from sim_bridge.launch_so3 import So3Study
 from sim_bridge.launch_study import LaunchComparison
 from sim_bridge.record import RunResult
 from sim_bridge.results import (
@@ -72,7 +73,8 @@ def _stat(values: list[float], fn) -> float | None:
     return _f(fn(values)) if values else None
 
 
-def compute_metrics(result: RunResult, launch_study: list[LaunchComparison] | None) -> RunMetrics:
+def compute_metrics(result: RunResult, launch_study: list[LaunchComparison] | None,
+                    launch_so3: So3Study | None = None) -> RunMetrics:
     """Score one run (headless or fleet) against the paper's figures and the checks."""
     cfg = result.cfg
     t, dev = formation_deviation(result)
@@ -122,7 +124,7 @@ def compute_metrics(result: RunResult, launch_study: list[LaunchComparison] | No
             vehicle_steps_per_s=result.vehicle_steps / result.wall_s if result.wall_s > 0 else None,
             physics_rate_hz=cfg.physics.rate_hz, agent_rate_hz=cfg.agent.rate_hz,
         ),
-        launch_study=launch_study,
+        launch_study=launch_study, launch_so3=launch_so3,
     )
     return dataclasses.replace(m, checks=_checks(m, cfg))
 
@@ -137,9 +139,14 @@ def _checks(m: RunMetrics, cfg) -> dict[str, bool]:
         "min_separation_ok": (m.separation.min_pair_distance_m or 0.0) >= cfg.safety.separation_m,
         "obstacle_clearance_ok": clearance is None or clearance >= cfg.safety.obstacle_margin_m,
     }
-    roll90 = next((c for c in m.launch_study or [] if c.roll_deg == 90.0), None)
-    if roll90 is not None:
-        g = roll90.geometric
-        checks["geometric_roll90_settles_within_1p5s"] = bool(
-            g.settled and g.settling_time_s is not None and g.settling_time_s <= 1.5)
+    for c in m.launch_study or []:
+        g = c.geometric
+        if c.roll_deg == 90.0:  # issue 9: within 1.0 s, and better than PID on all three figures
+            checks["geometric_roll90_settles_within_1s_and_beats_pid"] = bool(
+                g.settling_time_s is not None and g.settling_time_s <= 1.0 and c.geometric_beats_pid())
+        elif c.roll_deg == 179.0:  # issue 9: at most 5 m lost, and better than PID on all three
+            checks["geometric_roll179_loses_under_5m_and_beats_pid"] = bool(
+                g.altitude_loss_m <= 5.0 and c.geometric_beats_pid())
+    if m.launch_so3 is not None and m.launch_so3.draws.n:
+        checks["so3_launches_all_recover_and_geometric_beats_pid"] = m.launch_so3.geometric_wins()
     return checks

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:  # launch_study imports the scenario, which imports the transport, which uses these types
+    from sim_bridge.launch_so3 import So3Study
     from sim_bridge.launch_study import LaunchComparison
 
 
@@ -179,6 +180,8 @@ class RunMetrics:
     mission: MissionOutcome
     performance: Performance
     launch_study: list[LaunchComparison] | None = None
+    launch_so3: So3Study | None = None
+    """Both controllers over releases at random attitudes (summary in JSON; per draw in launch_so3.csv)."""
     checks: dict[str, bool] = field(default_factory=dict)
 
     @property
@@ -193,6 +196,9 @@ class RunMetrics:
             if f.name == "launch_study":
                 if value is not None:
                     out[f.name] = {c.key: c.to_json() for c in value}  # as launch_study_json
+            elif f.name == "launch_so3":
+                if value is not None:
+                    out[f.name] = value.summary()
             elif dataclasses.is_dataclass(value):
                 out[f.name] = dataclasses.asdict(value)  # type: ignore[arg-type]
             else:

@@ -54,6 +54,14 @@ class LaunchStudyConfig:
     duration_s: float = Field(default=6.0, gt=0)
     settle_tilt_deg: float = Field(default=5.0, gt=0)
     settle_speed_mps: float = Field(default=0.2, gt=0)
+    release_height_m: float = Field(default=30.0, gt=0)
+    """Height of every release above the (absent) ground."""
+    so3_draws: int = Field(default=1000, ge=0)
+    """Releases at attitudes uniform over SO(3), both controllers on the same draws (0 = off)."""
+    body_rate_max_radps: float = Field(default=10.0, ge=0)
+    """SO(3) draws: body rates uniform in the ball of this radius."""
+    sample_period_s: float = Field(default=0.01, gt=0)
+    """SO(3) draws: settling and height lost are judged on samples this far apart."""
 
 
 @dataclass(config=STRICT)

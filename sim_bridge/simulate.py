@@ -7,7 +7,9 @@ from pathlib import Path
 
 from companion.config import load_yaml
 from sim_bridge.figures import write_figures
+from sim_bridge.figures_studies import fig_launch_cdf
 from sim_bridge.headless import run_scenario
+from sim_bridge.launch_so3 import run_so3_study
 from sim_bridge.launch_study import run_launch_study
 from sim_bridge.metrics import compute_metrics
 from sim_bridge.record import save_log
@@ -32,15 +34,33 @@ def simulate(cfg: ScenarioConfig, out_dir: Path, progress: bool = True, figures:
     vehicle at the log rate), config.json (the resolved config) and the figures.
     """
     out_dir.mkdir(parents=True, exist_ok=True)
-    study, traces = run_launch_study(cfg) if cfg.launch_study.enabled else (None, None)
+    ls = cfg.launch_study
+    study, traces = run_launch_study(cfg) if ls.enabled else (None, None)
+    so3 = run_so3_study(cfg) if ls.enabled and ls.so3_draws > 0 else None
     result = run_scenario(cfg, progress=progress)
-    metrics = compute_metrics(result, study)
+    metrics = compute_metrics(result, study, so3)
     (out_dir / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
     save_log(result, out_dir)
     (out_dir / "metrics.json").write_text(json.dumps(metrics.to_json(), indent=2))
+    if so3 is not None:
+        write_csv(out_dir / "launch_so3.csv", so3.rows())
     if cfg.output.figures if figures is None else figures:
         write_figures(result, traces, out_dir)
+        if so3 is not None:
+            fig_launch_cdf(so3, out_dir)
     return metrics
+
+
+def write_csv(path: Path, rows: list[dict]) -> Path:
+    """rows (dicts with the same keys) as CSV with a header; floats as written by repr."""
+    import csv
+
+    with path.open("w", newline="") as fh:
+        if rows:
+            w = csv.DictWriter(fh, fieldnames=list(rows[0]))
+            w.writeheader()
+            w.writerows(rows)
+    return path
 
 
 def _steps(per_s: float | None) -> str:
@@ -71,10 +91,21 @@ def summary_lines(metrics: RunMetrics, out_dir: Path) -> list[str]:
         g, p, r = c.geometric, c.pid, c.pid_over_geometric
         lines.append(
             f"  launch roll {c.roll_deg:g} deg: geometric settles {fmt(g.settling_time_s, ' s', 2)},"
-            f" drift {fmt(g.drift_m, ' m', 2)}; PID {fmt(p.settling_time_s, ' s', 2)},"
-            f" drift {fmt(p.drift_m, ' m', 2)} (PID/geometric: settle {fmt(r.get('settling_time_s'), 'x', 2)},"
-            f" drift {fmt(r.get('drift_m'), 'x', 2)})"
+            f" drift {fmt(g.drift_m, ' m', 2)}, lost {fmt(g.altitude_loss_m, ' m', 2)};"
+            f" PID {fmt(p.settling_time_s, ' s', 2)}, drift {fmt(p.drift_m, ' m', 2)},"
+            f" lost {fmt(p.altitude_loss_m, ' m', 2)} (PID/geometric: settle {fmt(r.get('settling_time_s'), 'x', 2)},"
+            f" drift {fmt(r.get('drift_m'), 'x', 2)}, lost {fmt(r.get('altitude_loss_m'), 'x', 2)})"
         )
+    if metrics.launch_so3 is not None:
+        so3 = metrics.launch_so3.summary()
+        g, p = so3["geometric"], so3["pid"]
+        lines.append(
+            f"  {so3['draws']} random-attitude launches: recovered {100 * (g['recovered_fraction'] or 0):.1f} %"
+            f" geometric / {100 * (p['recovered_fraction'] or 0):.1f} % PID; settle p50/p95"
+            f" {fmt(g['settle_time_s_p50'], '', 2)}/{fmt(g['settle_time_s_p95'], ' s', 2)} vs"
+            f" {fmt(p['settle_time_s_p50'], '', 2)}/{fmt(p['settle_time_s_p95'], ' s', 2)}; height lost p50/p95"
+            f" {fmt(g['altitude_loss_m_p50'], '', 2)}/{fmt(g['altitude_loss_m_p95'], ' m', 2)} vs"
+            f" {fmt(p['altitude_loss_m_p50'], '', 2)}/{fmt(p['altitude_loss_m_p95'], ' m', 2)}")
     for name, ok in metrics.checks.items():
         lines.append(f"  [{'PASS' if ok else 'FAIL'}] {name}")
     return lines

@@ -1,4 +1,6 @@
 """Geometric and PID controllers: recovery, pole matching, setpoint semantics."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -255,15 +257,19 @@ def test_attitude_mode_quaternion_and_thrust_norm(ctrl):
     np.testing.assert_allclose(a[1], expected, atol=1e-2)
 
 
-def test_tilt_and_thrust_limits_hold_on_a_long_reposition():
+@pytest.mark.parametrize("large_angle, overshoot_deg", [(False, 5.0), (True, 6.0)])
+def test_tilt_and_thrust_limits_hold_on_a_long_reposition(large_angle, overshoot_deg):
     st = hover_state(1, VP)
     sp = _pos_sp(1, [[200.0, 0.0, 0.0]])
-    ph = Physics(VP, InnerLoopConfig(controller="geometric"))
+    gains = dataclasses.replace(GG, large_angle=large_angle)
+    ph = Physics(VP, InnerLoopConfig(controller="geometric", geometric=gains))
     worst = 0.0
     for _ in range(200):
         ph.step(st, sp, n_steps=10)
         worst = max(worst, frames.tilt_rad(st.rot_body_to_ned[0]))
-    # the commanded tilt is clipped; the 72 ms motors let the real tilt overshoot it by a few degrees
-    assert np.degrees(worst) < GG.tilt_max_deg + 5.0
+    # The commanded tilt is clipped; the 72 ms motors let the real tilt overshoot it by a few
+    # degrees. The large-angle error is 2 sin(25 deg) = 0.85 for this 50 deg step where eq. 7's
+    # is sin(50 deg) = 0.77: a stiffer step, about 2 deg more overshoot.
+    assert np.degrees(worst) < GG.tilt_max_deg + overshoot_deg
     assert np.degrees(worst) > GG.tilt_max_deg - 5.0  # the limit is what binds
     assert abs(st.vel_ned_mps[0, 2]) < 0.3  # vertical priority: altitude held while tilting

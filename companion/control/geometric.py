@@ -29,7 +29,8 @@ from companion.state import FleetSetpoint, FleetState
 CP_MASS, CP_G, CP_JXX, CP_JYY, CP_JZZ, CP_FMAX = 0, 1, 2, 3, 4, 5
 CP_KX, CP_KV, CP_KR, CP_KOM, CP_TAN_TILT, CP_ACC_MAX = 6, 7, 8, 9, 10, 11
 CP_P_ATT, CP_P_VEL = 12, 13
-N_CP = 14
+CP_LARGE_ANGLE, CP_YAW_SHARE = 14, 15
+N_CP = 16
 
 # ---- packed setpoint row layout (N, N_SP), built by pack_setpoint
 SP_POS, SP_VEL, SP_ACC, SP_YAW, SP_YAWRATE, SP_Q, SP_THRUST, SP_RATE = 0, 3, 6, 9, 10, 11, 15, 16
@@ -57,6 +58,8 @@ def pack_control_params(vp: VehicleParams, gains: GeometricGains, pid: PIDGains 
     p[CP_TAN_TILT] = math.tan(math.radians(gains.tilt_max_deg))
     p[CP_ACC_MAX] = gains.acc_max_mps2
     p[CP_P_ATT], p[CP_P_VEL] = pid.att_integral_pole_per_s, pid.vel_integral_pole_per_s
+    p[CP_LARGE_ANGLE] = 1.0 if gains.large_angle else 0.0
+    p[CP_YAW_SHARE] = gains.yaw_error_max_rad
     return p
 
 
@@ -167,6 +170,82 @@ def attitude_law(rot, rot_d, om, om_d, prm):
 
 
 @kernel
+def rot_to_quat(r):
+    """Row-major R -> unit quaternion (w, x, y, z) with w >= 0 (Shepperd's branch choice)."""
+    tr = r[0] + r[4] + r[8]
+    if tr > 0.0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        w, x, y, z = 0.25 * s, (r[7] - r[5]) / s, (r[2] - r[6]) / s, (r[3] - r[1]) / s
+    elif r[0] > r[4] and r[0] > r[8]:
+        s = 2.0 * math.sqrt(max(1.0 + r[0] - r[4] - r[8], 1e-300))
+        w, x, y, z = (r[7] - r[5]) / s, 0.25 * s, (r[1] + r[3]) / s, (r[2] + r[6]) / s
+    elif r[4] > r[8]:
+        s = 2.0 * math.sqrt(max(1.0 + r[4] - r[0] - r[8], 1e-300))
+        w, x, y, z = (r[2] - r[6]) / s, (r[1] + r[3]) / s, 0.25 * s, (r[5] + r[7]) / s
+    else:
+        s = 2.0 * math.sqrt(max(1.0 + r[8] - r[0] - r[4], 1e-300))
+        w, x, y, z = (r[3] - r[1]) / s, (r[2] + r[6]) / s, (r[5] + r[7]) / s, 0.25 * s
+    if w < 0.0:
+        return -w, -x, -y, -z
+    return w, x, y, z
+
+
+@kernel
+def tilt_first_error(rot, rot_d, om, yaw_free):
+    """Attitude error for any attitude: (e_tilt_x, e_tilt_y, e_yaw) in the body frame, rad-like.
+
+    The rotation from the current to the desired attitude, q_e = q_xy * q_z (the
+    decomposition of Brescianini and D'Andrea, 2018), splits into a tilt about an axis in
+    the body xy-plane and a yaw about body z. Each part is returned as 2 vec(q), which is
+    the rotation vector to first order (near hover eq. 7, with the sign that M = +k_R J e
+    drives it to zero); its magnitude 2 sin(angle/2) grows all the way to 180 deg, where
+    eq. 7's sin(angle) falls back to 0 (the error of Lee et al.'s exponentially attractive
+    variant, 2011).
+    Exactly inverted with no preferred axis, the vehicle tilts about the axis it already
+    turns about (or roll), so that two nearby starts do not fight over the direction.
+    yaw_free: no yaw is commanded, so the yaw part is 0 and only the tilt is corrected.
+    """
+    w, x, y, z = rot_to_quat(mattmul(rot, rot_d))  # R^T R_d: current -> desired, body frame
+    a = math.sqrt(w * w + z * z)
+    if a > 1e-9:
+        tx, ty = (w * x - y * z) / a, (w * y + x * z) / a
+        cz, sz = w / a, z / a
+    else:  # 180 deg about a horizontal body axis
+        tx, ty, cz, sz = x, y, 1.0, 0.0
+    if a < 1e-6 and abs(tx) + abs(ty) < 1e-9:
+        tx, ty = 1.0, 0.0
+    if a < 0.05:  # nearly inverted: keep turning the way the body already turns (no chatter)
+        if om[0] * tx + om[1] * ty < 0.0:
+            tx, ty = -tx, -ty
+    ez = 0.0 if yaw_free else 2.0 * sz * (1.0 if cz >= 0.0 else -1.0)
+    return 2.0 * tx, 2.0 * ty, ez
+
+
+@kernel
+def attitude_law_large_angle(rot, rot_d, om, om_d, yaw_free, prm):
+    """Tilt-first attitude law for any attitude (docs/controllers.md, "Large angles").
+
+    M = J (k_R e - k_Om (Omega - R^T R_d Omega_d)) + Omega x J Omega - J hat(Omega) R^T R_d Omega_d,
+    with e from tilt_first_error and the yaw part clipped to CP_YAW_SHARE rad so that a
+    large heading error never takes roll/pitch authority (the allocator gives roll/pitch
+    priority as well). Near hover this equals attitude_law (eq. 9) to first order.
+    """
+    j = (prm[CP_JXX], prm[CP_JYY], prm[CP_JZZ])
+    ex, ey, ez = tilt_first_error(rot, rot_d, om, yaw_free)
+    ymax = prm[CP_YAW_SHARE]
+    ez = min(max(ez, -ymax), ymax)
+    rdt_r = mattmul(rot_d, rot)
+    om_d_body = mattvec(rdt_r, om_d)
+    e_om = sub(om, om_d_body)
+    kr, kom = prm[CP_KR], prm[CP_KOM]
+    gyro = cross(om, mul(j, om))
+    ff = mul(j, cross(om, om_d_body))
+    return (kr * j[0] * ex - kom * j[0] * e_om[0] + gyro[0] - ff[0],
+            kr * j[1] * ey - kom * j[1] * e_om[1] + gyro[1] - ff[1],
+            kr * j[2] * ez - kom * j[2] * e_om[2] + gyro[2] - ff[2])
+
+
+@kernel
 def attitude_mode_target(sp, prm):
     """(R_d, f, Omega_d) of an attitude-mode setpoint (att_q_wxyz finite).
 
@@ -211,8 +290,17 @@ def position_law(pos, vel, rot, sp, prm):
     b3d = (-t[0] / tn, -t[1] / tn, -t[2] / tn)
     yaw_d, yaw_rate = yaw_target(rot, sp)
     rot_d = desired_rot(b3d, yaw_d)
-    # eq. 14: f = -t . R e3 (projection on the current body axis)
+    # eq. 14: f = -t . R e3 = |t| cos(phi), phi between b3 and b3d (projection on the body axis).
     f = -(t[0] * rot[2] + t[1] * rot[5] + t[2] * rot[8])
+    if prm[CP_LARGE_ANGLE] > 0.0 and rot[8] > 0.0:
+        # Thrust scheduled by where body z points (docs/controllers.md, "Large angles").
+        # While it is below the horizon (rot[8] = cos tilt > 0), at least the thrust whose
+        # vertical part is t's, up to f_max. This only binds when the body is tilted further
+        # than b3d (rolling in, the projection is larger): the rotors stay spun up and the
+        # height is held while a thrown vehicle rolls back upright. Above the horizon eq. 14's
+        # projection is negative: no thrust, so an inverted vehicle never pushes itself at
+        # the ground. Near hover (b3 close to b3d) both are |t| to first order.
+        f = max(f, min(-t[2] / rot[8], prm[CP_FMAX]))
     f = min(max(f, 0.0), prm[CP_FMAX])
     # yaw rate about world e3, expressed in the desired body frame: R_d^T e3 * rate
     om_d = (rot_d[6] * yaw_rate, rot_d[7] * yaw_rate, rot_d[8] * yaw_rate)
@@ -224,9 +312,14 @@ def geometric_core(pos, vel, rot, om, sp, prm):
     """One vehicle: (f [N], M [N m] 3-tuple) from state tuples and a packed setpoint row."""
     if math.isfinite(sp[SP_Q]):
         rot_d, f, om_d = attitude_mode_target(sp, prm)
+        yaw_free = False
     else:
         rot_d, f, om_d = position_law(pos, vel, rot, sp, prm)
-    m = attitude_law(rot, rot_d, om, om_d, prm)
+        yaw_free = not math.isfinite(sp[SP_YAW])
+    if prm[CP_LARGE_ANGLE] > 0.0:
+        m = attitude_law_large_angle(rot, rot_d, om, om_d, yaw_free, prm)
+    else:
+        m = attitude_law(rot, rot_d, om, om_d, prm)
     return f, m
 
 
