@@ -30,9 +30,12 @@ CTRL_GEOMETRIC, CTRL_PID = 0, 1
 
 @dataclass(config=STRICT)
 class WindConfig:
-    """Fleet-wide wind: steady NED vector plus first-order Gauss-Markov gusts per axis.
+    """Fleet-wide wind: steady NED vector plus first-order Gauss-Markov gusts per axis
+    (the first-order filter of the Dryden model's longitudinal component, with
+    correlation time gust_tau_s = L/V, applied to each axis; spatially uniform).
 
-    Wind only acts through the linear drag (VehicleParams.drag_coeff_n_per_mps).
+    Wind only acts through the linear drag (VehicleParams.drag_coeff_n_per_mps): a
+    scenario with wind and zero drag is refused at load.
     """
 
     steady_ned_mps: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -40,6 +43,41 @@ class WindConfig:
     """Stationary standard deviation of each gust component."""
     gust_tau_s: float = Field(default=1.0, gt=0)
     """Correlation time of the Gauss-Markov gust process."""
+
+    @property
+    def active(self) -> bool:
+        return self.gust_std_mps > 0 or any(v != 0.0 for v in self.steady_ned_mps)
+
+
+class WindField:
+    """One realisation of a WindConfig, sampled at the physics step.
+
+    The SITL shares one field between the Physics of all its parameter groups (one
+    wind for the whole fleet, as headless): it calls `advance(n)` once per tick and
+    every group steps on `block`.
+
+    Args:
+        cfg: the wind.
+        dt_s: physics step, s.
+        rng: Generator for the gusts (the field's own stream).
+    """
+
+    def __init__(self, cfg: WindConfig, dt_s: float, rng: np.random.Generator):
+        self.cfg, self.rng = cfg, rng
+        sd = cfg.gust_std_mps
+        self.gust_ned_mps = rng.normal(0.0, sd, 3) if sd > 0 else np.zeros(3)
+        self._phi = math.exp(-dt_s / cfg.gust_tau_s)
+        self._sig = sd * math.sqrt(1.0 - self._phi ** 2)
+        self.block = np.asarray(cfg.steady_ned_mps, float)[None, :].copy()
+        """(n, 3) wind at each step of the current block (or (1, 3) when steady), NED m/s."""
+
+    def advance(self, n_steps: int) -> np.ndarray:
+        """Draw the next n_steps of wind into `block` and return it."""
+        steady = np.asarray(self.cfg.steady_ned_mps, float)
+        if self.cfg.gust_std_mps > 0:
+            noise = self.rng.standard_normal((n_steps, 3))
+            self.block = _gusts(self.gust_ned_mps, noise, self._phi, self._sig) + steady
+        return self.block
 
 
 def hover_rotor_speed_radps(vp: VehicleParams) -> float:
@@ -118,7 +156,8 @@ class Physics:
         vehicle: airframe parameters.
         inner: which controller runs every physics step, and its gains.
         dt_s: physics step (s).
-        wind: optional WindConfig (acts through drag only).
+        wind: optional WindConfig (acts through drag only), drawn from rng; or a shared
+            WindField that its owner advances (then step uses its current block).
         ground_z_m: NED z of a flat ground (vehicles rest on it); None = no ground.
         rng: Generator for the gust noise (required for reproducibility when gusts are on;
             a fixed default_rng(0) is used if omitted).
@@ -127,22 +166,19 @@ class Physics:
     """
 
     def __init__(self, vehicle: VehicleParams, inner: InnerLoopConfig, dt_s: float = 0.001,
-                 wind: WindConfig | None = None, ground_z_m: float | None = None,
+                 wind: WindConfig | WindField | None = None, ground_z_m: float | None = None,
                  rng: np.random.Generator | None = None):
         if not dt_s > 0:
             raise ValueError("dt_s must be > 0")
         self.vehicle, self.inner, self.dt_s = vehicle, inner, float(dt_s)
-        self.wind = wind or WindConfig()
         self.ground_z_m = math.inf if ground_z_m is None else float(ground_z_m)
         self.rng = rng if rng is not None else np.random.default_rng(0)
         self._cprm = pack_control_params(vehicle, inner.geometric, inner.pid)
         self._vprm = pack_vehicle_params(vehicle)
         self._mot = motor_coeffs(vehicle.motor_time_constant_s, self.dt_s)
         self._ctrl = CTRL_GEOMETRIC if inner.controller == "geometric" else CTRL_PID
-        sd = self.wind.gust_std_mps
-        self.gust_ned_mps = self.rng.normal(0.0, sd, 3) if sd > 0 else np.zeros(3)
-        self._phi = math.exp(-self.dt_s / self.wind.gust_tau_s)
-        self._sig = sd * math.sqrt(1.0 - self._phi ** 2)
+        self._shared_wind = isinstance(wind, WindField)
+        self.wind_field = wind if isinstance(wind, WindField) else WindField(wind or WindConfig(), self.dt_s, self.rng)
 
     def warm_up(self) -> None:
         """Compile (or load from numba's cache) the stepper now, on a scratch vehicle, so
@@ -150,19 +186,21 @@ class Physics:
         state = hover_state(1, self.vehicle)
         sp = FleetSetpoint.empty(1)
         sp.pos_ned_m[...] = 0.0
-        rng, gust = self.rng, self.gust_ned_mps.copy()
-        self.rng = np.random.default_rng(0)  # the real run's gust sequence stays untouched
+        field, shared = self.wind_field, self._shared_wind
+        # the real run's gust sequence stays untouched: a scratch field, held as shared
+        self.wind_field, self._shared_wind = WindField(WindConfig(), self.dt_s, np.random.default_rng(0)), True
         try:
             self.step(state, sp, 1)
         finally:
-            self.rng, self.gust_ned_mps = rng, gust
+            self.wind_field, self._shared_wind = field, shared
 
     def _wind_sequence(self, n_steps: int) -> np.ndarray:
-        steady = np.asarray(self.wind.steady_ned_mps, float)
-        if self.wind.gust_std_mps <= 0:
-            return steady[None, :].copy()
-        noise = self.rng.standard_normal((n_steps, 3))
-        return _gusts(self.gust_ned_mps, noise, self._phi, self._sig) + steady
+        if self._shared_wind:
+            block = self.wind_field.block
+            if len(block) not in (1, n_steps):
+                raise ValueError(f"shared wind block has {len(block)} steps, this step {n_steps}")
+            return block
+        return self.wind_field.advance(n_steps)
 
     def step(self, state: FleetState, setpoint: FleetSetpoint, n_steps: int = 1,
              active: np.ndarray | None = None) -> None:

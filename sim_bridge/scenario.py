@@ -98,4 +98,9 @@ class ScenarioConfig:
             raise ValueError(
                 f"agent.rate_hz ({self.agent.rate_hz}) must be a whole multiple of output.log_rate_hz ({self.output.log_rate_hz})"
             )
+        if self.physics.wind.active and self.vehicle.drag_coeff_n_per_mps <= 0:
+            raise ValueError(
+                "physics.wind is set but vehicle.drag_coeff_n_per_mps is 0: wind acts only through drag, so it would "
+                "have no effect; set a drag coefficient (a Crazyflie is about 0.0065 N/(m/s), docs/vehicle.md)"
+            )
         return self

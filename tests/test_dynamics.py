@@ -178,3 +178,38 @@ def test_physics_active_mask_and_errors():
     with pytest.raises(ValueError):
         hover_rotor_speed_radps(VehicleParams(rotor_speed_max_radps=1000.0))
     assert np.isclose(yaw_rad(st.rot_body_to_ned[0]), 0.0)
+
+
+def test_shared_wind_field_blows_the_same_on_every_group():
+    """The SITL steps each parameter group's Physics on one WindField it advances per tick."""
+    from sim_bridge.physics import WindField
+
+    vp = VehicleParams(drag_coeff_n_per_mps=0.01)
+    field = WindField(WindConfig(steady_ned_mps=(1.0, 0, 0), gust_std_mps=2.0, gust_tau_s=0.5), 1e-3,
+                      np.random.default_rng(3))
+    groups = [Physics(vp, InnerLoopConfig(controller=c), wind=field) for c in ("geometric", "geometric")]
+    states = [hover_state(1, vp), hover_state(1, vp)]
+    sp = FleetSetpoint.empty(1)
+    sp.pos_ned_m[:] = 0.0
+    for _ in range(50):
+        field.advance(10)
+        for ph, st in zip(groups, states):
+            ph.step(st, sp, n_steps=10)
+    np.testing.assert_array_equal(states[0].pos_ned_m, states[1].pos_ned_m)
+    assert np.abs(states[0].pos_ned_m).max() > 1e-3  # the gusts did push
+    with pytest.raises(ValueError, match="shared wind block"):
+        groups[0].step(states[0], sp, n_steps=7)
+
+
+@pytest.mark.parametrize("where", ["scenario", "sitl"])
+def test_wind_without_drag_is_a_config_error(where):
+    from companion.config import ConfigError, validate
+    from sim_bridge.scenario import ScenarioConfig
+    from sim_bridge.sitl.config import SitlConfig
+
+    wind = {"steady_ned_mps": [3.0, 0.0, 0.0]}
+    data, cls = ({"physics": {"wind": wind}}, ScenarioConfig) if where == "scenario" else ({"wind": wind}, SitlConfig)
+    with pytest.raises(ConfigError, match="drag_coeff_n_per_mps is 0"):
+        validate(cls, data, "cfg.yaml")
+    data_ok = dict(data, vehicle={"drag_coeff_n_per_mps": 0.0065})
+    validate(cls, data_ok, "cfg.yaml")

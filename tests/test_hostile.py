@@ -250,3 +250,20 @@ def test_geofence_config_is_validated():
         path.write_text(yaml.safe_dump(data))
         with pytest.raises(ConfigError, match="geofence"):
             load_mission_file(path)
+
+
+def test_sitl_wind_pushes_a_hovering_vehicle_through_drag():
+    """Wind configured in the SITL acts as headless: a steady 4 m/s east wind on a vehicle holding
+    position tilts it into the wind (thrust balances drag c * 4 m/s)."""
+    from companion.params import VehicleParams
+    from sim_bridge.physics import WindConfig
+
+    vp = VehicleParams(drag_coeff_n_per_mps=0.0065)
+    s = SitlServer(SitlConfig(vehicles=1, vehicle=vp, wind=WindConfig(steady_ned_mps=(0.0, 4.0, 0.0))))
+    _hovering_offboard(s)
+    _send(s, 0, _vel_target((0, 0, 0)))
+    _fly(s, 6.0)
+    r = s.state.rot_body_to_ned[0]
+    # thrust direction -b3 leans west (against the wind): its east component is about -c v / (m g)
+    lean = -r[1, 2]
+    assert lean == pytest.approx(-0.0065 * 4.0 / (vp.mass_kg * 9.80665), rel=0.2)

@@ -5,12 +5,13 @@ from pathlib import Path
 from typing import Literal
 
 import yaml
-from pydantic import Field
+from pydantic import Field, model_validator
 from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT, ConfigError, validate
 from companion.params import InnerLoopConfig, VehicleParams
 from sim_bridge.carrier import CarrierConfig
+from sim_bridge.physics import WindConfig
 from sim_bridge.transport import LinkConfig
 
 
@@ -126,6 +127,8 @@ class SitlConfig:
     vehicle: VehicleParams = VehicleParams()
     inner_loop: InnerLoopConfig = InnerLoopConfig()
     ground_z_m: float = 0.0
+    wind: WindConfig = WindConfig()
+    """One wind for the whole fleet, drawn from the SITL's seed (as headless; acts through drag)."""
     endpoints: EndpointConfig = EndpointConfig()
     home: HomeConfig = HomeConfig()
     streams: StreamRates = StreamRates()
@@ -137,6 +140,12 @@ class SitlConfig:
     tlog_path: str | None = None
     medium: MediumConfig = MediumConfig()
     signing: SigningConfig = SigningConfig()
+
+    @model_validator(mode="after")
+    def _wind_needs_drag(self):
+        if self.wind.active and self.vehicle.drag_coeff_n_per_mps <= 0:
+            raise ValueError("wind is set but vehicle.drag_coeff_n_per_mps is 0: wind acts only through drag")
+        return self
 
 
 def load_config(path: str | Path | None, **overrides) -> SitlConfig:

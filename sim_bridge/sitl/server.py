@@ -41,7 +41,7 @@ from companion.params import GRAVITY_MPS2  # noqa: E402
 from companion.state import FleetSetpoint, FleetState  # noqa: E402
 from companion.swarm import FLAG_ASSEMBLED, swarm_due  # noqa: E402
 from sim_bridge.carrier import carrier_position_ned_m, release_times_s, sample_release_attitudes  # noqa: E402
-from sim_bridge.physics import Physics  # noqa: E402
+from sim_bridge.physics import Physics, WindField  # noqa: E402
 from sim_bridge.record import MissionTracker, RunResult  # noqa: E402
 from sim_bridge.record import warm_up as warm_up_tracker  # noqa: E402
 from sim_bridge.results import LinkStats  # noqa: E402
@@ -159,6 +159,9 @@ class SitlServer:
         self.tick_s = tc.tick_s
         self.steps_per_tick = max(1, int(round(tc.tick_s * tc.physics_rate_hz)))
         self.physics_dt_s = tc.tick_s / self.steps_per_tick
+        # One wind for the whole fleet (its own random stream), advanced once per tick and
+        # shared by every parameter group's Physics, as headless.
+        self.wind_field = WindField(cfg.wind, self.physics_dt_s, np.random.default_rng([cfg.seed, 0x57494E44]))
         self.vehicle_steps = 0
         """Physics steps taken, summed over vehicles (docked vehicles take none)."""
         self.ap_every = max(1, int(round(1.0 / (tc.autopilot_rate_hz * tc.tick_s))))
@@ -297,7 +300,7 @@ class SitlServer:
         if key not in self._physics:
             self._physics[key] = Physics(self.cfg.vehicle, table.inner_loop(self.cfg.inner_loop),
                                          dt_s=self.physics_dt_s, ground_z_m=self.cfg.ground_z_m,
-                                         rng=np.random.default_rng(self.rng.integers(2**63)))
+                                         wind=self.wind_field, rng=np.random.default_rng(self.rng.integers(2**63)))
             self._group_keys.append(key)
         self._group[k] = self._group_keys.index(key)
         self._grouped = max(self._grouped, k + 1)
@@ -368,6 +371,7 @@ class SitlServer:
         active = np.fromiter((ap.needs_physics for ap in self.autopilots), bool, self.n)
         self.vehicle_steps += int(active.sum()) * self.steps_per_tick
         if active.any():
+            self.wind_field.advance(self.steps_per_tick)
             for g, key in enumerate(self._group_keys):
                 mask = active & (self._group == g) if len(self._group_keys) > 1 else active
                 if mask.any():
