@@ -25,6 +25,7 @@ from companion.state import FleetSetpoint, FleetState
 from companion.swarm import SwarmView, swarm_due
 from sim_bridge.autopilot_model import hold_point, throw_recovered
 from sim_bridge.carrier import carrier_position_ned_m, release_times_s, sample_release_attitudes
+from sim_bridge.estimator import Estimator, to_true_frame
 from sim_bridge.jit import agent_kernels
 from sim_bridge.physics import Physics, hover_rotor_speed_radps
 from sim_bridge.record import MissionTracker, RunResult
@@ -132,6 +133,7 @@ def run_scenario(cfg: ScenarioConfig, progress: bool = True, clock=None,
     ids = np.arange(n)
     agent = Agent(mission, ids, kernels=agent_kernels())
     transport = transport or make_transport(cfg.link, n, cfg.seed)
+    estimator = Estimator(cfg.estimator, n, np.random.default_rng([cfg.seed, 0x455354])) if cfg.estimator.active else None
     view = SwarmView.unknown(n, n)
     autopilot = AutopilotModel.docked(n)
     dt_agent = 1.0 / cfg.agent.rate_hz
@@ -159,13 +161,19 @@ def run_scenario(cfg: ScenarioConfig, progress: bool = True, clock=None,
         state.vel_ned_mps[docked] = cfg.carrier.vel_ned_mps
 
         transport.deliver(t, view)
-        own = OwnState(state.pos_ned_m, state.vel_ned_mps, frames.rot_to_quat_wxyz(state.rot_body_to_ned),
-                       np.full(n, t), released, autopilot.ready)
+        if estimator is None:
+            own = OwnState(state.pos_ned_m, state.vel_ned_mps, frames.rot_to_quat_wxyz(state.rot_body_to_ned),
+                           np.full(n, t), released, autopilot.ready)
+        else:  # what the autopilot's estimator would report (the SITL applies the same model)
+            p_obs, v_obs, r_obs = estimator.observe(t, state.pos_ned_m, state.vel_ned_mps, state.rot_body_to_ned)
+            own = OwnState(p_obs, v_obs, frames.rot_to_quat_wxyz(r_obs), np.full(n, t), released, autopilot.ready)
         out = agent.step(t, own, view)
         publish = swarm_due(round(t * 1e6), cfg.mission.swarm.rate_hz, ids, round(dt_agent * 1e6))
         if publish.any():
             transport.publish(t, out.published.select(publish), state.pos_ned_m)
         sp = autopilot.setpoint(state, out.setpoint)
+        if estimator is not None:  # the autopilot flies on its estimate (sim_bridge/estimator.py)
+            sp.pos_ned_m = to_true_frame(sp.pos_ned_m, estimator.offset_ned_m)
         done = tracker.update(t, state, sp, released, out.phase, out.assembled, out.t_go_s)
         if done or k == n_ticks:
             break

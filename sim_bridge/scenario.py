@@ -8,6 +8,7 @@ from companion.config import STRICT
 from companion.mission import MissionConfig
 from companion.params import InnerLoopConfig, VehicleParams
 from sim_bridge.carrier import CarrierConfig
+from sim_bridge.estimator import EstimatorConfig
 from sim_bridge.physics import WindConfig
 from sim_bridge.transport import LinkConfig
 
@@ -85,6 +86,8 @@ class ScenarioConfig:
     launch_study: LaunchStudyConfig = LaunchStudyConfig()
     link: LinkConfig = LinkConfig()
     """How published neighbour states travel (headless: perfect or lossy)."""
+    estimator: EstimatorConfig = EstimatorConfig()
+    """GPS/estimator errors and latency on the states the agents receive (headless and SITL)."""
 
     @model_validator(mode="after")
     def _rates_divide(self):

@@ -64,7 +64,7 @@ def from_scenario(cfg, sc):
     medium = dataclasses.replace(cfg.medium, link=sc.link, swarm_rate_hz=sc.mission.swarm.rate_hz)
     return dataclasses.replace(cfg, vehicles=sc.mission.n_vehicles, seed=sc.seed, vehicle=sc.vehicle,
                                inner_loop=sc.inner_loop, carrier=sc.carrier, ground_z_m=ground, home=home,
-                               wind=sc.physics.wind,
+                               wind=sc.physics.wind, estimator=sc.estimator,
                                medium=medium, spawn=dataclasses.replace(cfg.spawn, launch=sc.mission.launch))
 
 

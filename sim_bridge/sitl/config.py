@@ -11,6 +11,7 @@ from pydantic.dataclasses import dataclass
 from companion.config import STRICT, ConfigError, validate
 from companion.params import InnerLoopConfig, VehicleParams
 from sim_bridge.carrier import CarrierConfig
+from sim_bridge.estimator import EstimatorConfig
 from sim_bridge.physics import WindConfig
 from sim_bridge.transport import LinkConfig
 
@@ -129,6 +130,8 @@ class SitlConfig:
     ground_z_m: float = 0.0
     wind: WindConfig = WindConfig()
     """One wind for the whole fleet, drawn from the SITL's seed (as headless; acts through drag)."""
+    estimator: EstimatorConfig = EstimatorConfig()
+    """GPS/estimator errors and latency on every reported state (the inner loop flies the true one)."""
     endpoints: EndpointConfig = EndpointConfig()
     home: HomeConfig = HomeConfig()
     streams: StreamRates = StreamRates()

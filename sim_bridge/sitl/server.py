@@ -41,6 +41,7 @@ from companion.params import GRAVITY_MPS2  # noqa: E402
 from companion.state import FleetSetpoint, FleetState  # noqa: E402
 from companion.swarm import FLAG_ASSEMBLED, swarm_due  # noqa: E402
 from sim_bridge.carrier import carrier_position_ned_m, release_times_s, sample_release_attitudes  # noqa: E402
+from sim_bridge.estimator import Estimator, to_true_frame  # noqa: E402
 from sim_bridge.physics import Physics, WindField  # noqa: E402
 from sim_bridge.record import MissionTracker, RunResult  # noqa: E402
 from sim_bridge.record import warm_up as warm_up_tracker  # noqa: E402
@@ -149,7 +150,8 @@ class SitlServer:
         loop's steady speed stays under MPC_XY_VEL_MAX / MPC_Z_VEL_MAX_UP / _DN (PX4 caps the
         velocity its position controller asks for; a 1e30 m target must not be flown flat out)."""
         self.telemetry = TelemetryBuilder(self.state, self.autopilots, cfg.home, self.home_ned_m,
-                                          cfg.time.epoch_unix_s)
+                                          cfg.time.epoch_unix_s,
+                                          estimator=Estimator(cfg.estimator, self.n, np.random.default_rng([cfg.seed, 0x455354])))
         # The first GNSS fix of each vehicle (its EKF origin is where it is then); drawn
         # from their own stream so that the launch draws stay those of the seed.
         fix_max = cfg.spawn.gps_fix_delay_max_s
@@ -372,10 +374,13 @@ class SitlServer:
         self.vehicle_steps += int(active.sum()) * self.steps_per_tick
         if active.any():
             self.wind_field.advance(self.steps_per_tick)
+            sp, est = self.fleet_sp, self.telemetry.estimator
+            if est is not None and est.cfg.active:  # each autopilot flies on its own estimate
+                sp = dataclasses.replace(sp, pos_ned_m=to_true_frame(sp.pos_ned_m, est.offset_ned_m))
             for g, key in enumerate(self._group_keys):
                 mask = active & (self._group == g) if len(self._group_keys) > 1 else active
                 if mask.any():
-                    self._physics[key].step(self.state, self.fleet_sp, self.steps_per_tick, active=mask)
+                    self._physics[key].step(self.state, sp, self.steps_per_tick, active=mask)
         self.ticks += 1
         self.sim_s = self.ticks * self.tick_s
         if self.carrier:

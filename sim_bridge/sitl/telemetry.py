@@ -18,6 +18,7 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
 from companion.frames import ned_to_geodetic, rot_to_euler_zyx, rot_to_quat_wxyz  # noqa: E402
 from companion.state import FleetState  # noqa: E402
+from sim_bridge.estimator import Estimator  # noqa: E402
 from sim_bridge.sitl.autopilot import Autopilot  # noqa: E402
 from sim_bridge.sitl.config import HomeConfig, StreamRates  # noqa: E402
 
@@ -131,6 +132,9 @@ class Snapshot:
     time_boot_ms: int
     rpy: np.ndarray
     quat: np.ndarray
+    pos_ned_m: np.ndarray
+    """(N, 3) world NED positions as the estimator reports them."""
+    vel_ned_mps: np.ndarray
     _geo: dict | None = None
 
 
@@ -145,8 +149,10 @@ class TelemetryBuilder:
     """
 
     def __init__(self, state: FleetState, autopilots: list[Autopilot], home: HomeConfig,
-                 home_ned_m: np.ndarray, epoch_unix_s: float | None = None):
+                 home_ned_m: np.ndarray, epoch_unix_s: float | None = None, estimator: Estimator | None = None):
         self.state = state
+        self.estimator = estimator
+        """GPS/estimator errors and latency on what is reported (None: the true state)."""
         self.aps = autopilots
         self.home = home
         self.home_ned_m = home_ned_m
@@ -162,8 +168,12 @@ class TelemetryBuilder:
 
     def snapshot(self, sim_s: float) -> Snapshot:
         s = self.state
+        if self.estimator is not None and self.estimator.cfg.active:
+            pos, vel, rot = self.estimator.observe(sim_s, s.pos_ned_m, s.vel_ned_mps, s.rot_body_to_ned)
+        else:
+            pos, vel, rot = s.pos_ned_m, s.vel_ned_mps, s.rot_body_to_ned
         self._snap = Snapshot(time_boot_ms=int(round(sim_s * 1000)) & 0xFFFFFFFF,
-                              rpy=rot_to_euler_zyx(s.rot_body_to_ned), quat=rot_to_quat_wxyz(s.rot_body_to_ned))
+                              rpy=rot_to_euler_zyx(rot), quat=rot_to_quat_wxyz(rot), pos_ned_m=pos, vel_ned_mps=vel)
         return self._snap
 
     def prepare_geodetic(self, ks) -> None:
@@ -177,7 +187,7 @@ class TelemetryBuilder:
         ks = [k for k in ks if k not in snap._geo]
         if not ks:
             return
-        lat, lon, alt = world_to_geodetic(self.home, self.state.pos_ned_m[ks])
+        lat, lon, alt = world_to_geodetic(self.home, snap.pos_ned_m[ks])
         for k, a, b, c in zip(ks, np.round(lat * 1e7).tolist(), np.round(lon * 1e7).tolist(),
                               np.round(alt * 1e3).tolist()):
             snap._geo[k] = (int(a), int(b), int(c))
@@ -227,7 +237,7 @@ class TelemetryBuilder:
         if msgid == LOCAL_POSITION_NED:
             if ap.origin_ned_m is None:
                 return None  # no local position before the EKF has an origin
-            p, v = s.pos_ned_m[k] - ap.origin_ned_m, s.vel_ned_mps[k]
+            p, v = snap.pos_ned_m[k] - ap.origin_ned_m, snap.vel_ned_mps[k]
             return mavlink.MAVLink_local_position_ned_message(tb, float(p[0]), float(p[1]), float(p[2]),
                                                               float(v[0]), float(v[1]), float(v[2]))
         if msgid == ATTITUDE:
@@ -242,14 +252,14 @@ class TelemetryBuilder:
             if ap.origin_ned_m is None:
                 return None
             lat, lon, alt = self._geodetic(snap, k)
-            v = s.vel_ned_mps[k]
+            v = snap.vel_ned_mps[k]
             hdg = int(round(math.degrees(snap.rpy[k, 2]) * 100)) % 36000
-            rel_mm = int(round((self.home_ned_m[k, 2] - s.pos_ned_m[k, 2]) * 1000))
+            rel_mm = int(round((self.home_ned_m[k, 2] - snap.pos_ned_m[k, 2]) * 1000))
             return mavlink.MAVLink_global_position_int_message(
                 tb, lat, lon, alt, rel_mm, _i16(v[0] * 100), _i16(v[1] * 100),
                 _i16(v[2] * 100), hdg)
         if msgid == GPS_RAW_INT:
-            v = s.vel_ned_mps[k]
+            v = snap.vel_ned_mps[k]
             if ap.origin_ned_m is None:
                 return mavlink.MAVLink_gps_raw_int_message(int(sim_s * 1e6), 1, 0, 0, 0, 65535, 65535, 65535,
                                                            65535, 0)
