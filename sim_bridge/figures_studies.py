@@ -41,3 +41,29 @@ def fig_launch_cdf(study, out: Path) -> Path:
     fig.savefig(p, dpi=110)
     plt.close(fig)
     return p
+
+
+def fig_sweep(runs, safety_distance_m: float, out: Path) -> Path:
+    """Sweep summary: CDFs of minimum separation, worst settle time and completion time.
+
+    runs: list of sweep.SweepRun (crashed runs are counted in the denominators).
+    """
+    fig, axs = plt.subplots(1, 3, figsize=(14, 4.2))
+    panels = (("min_separation_m", "minimum pair separation (m)"), ("max_settle_time_s", "worst recovery time in run (s)"),
+              ("completion_time_s", "mission completion time (s)"))
+    for ax, (name, xlabel) in zip(axs, panels):
+        vals = np.array([np.nan if getattr(r, name) is None else getattr(r, name) for r in runs], float)
+        _cdf(ax, vals, f"{np.isfinite(vals).sum()} of {len(runs)} runs")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("fraction of runs")
+        ax.set_ylim(0, 1.02)
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower right", fontsize=8)
+    axs[0].axvline(safety_distance_m, color="red", linestyle="--", linewidth=1)
+    passed = sum(r.ok and r.passed for r in runs)
+    fig.suptitle(f"{len(runs)} seeds: {passed} passed every check")
+    fig.tight_layout()
+    p = out / "fig_sweep.png"
+    fig.savefig(p, dpi=110)
+    plt.close(fig)
+    return p

@@ -8,6 +8,7 @@ subcommands import their packages only when they run.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -56,6 +57,36 @@ def _cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_sweep(args: argparse.Namespace) -> int:
+    from companion.config import ConfigError
+    from sim_bridge.simulate import load_scenario, simulate, summary_lines
+    from sim_bridge.sweep import SweepError, run_sweep, write_results
+
+    stem = Path(args.config).stem
+    try:
+        cfg = load_scenario(args.config)
+        if args.rerun is not None:  # one run, in-process, with its full run directory and figures
+            out = Path(args.out) if args.out else Path("runs") / f"{stem}_sweep" / f"rerun_{args.rerun}"
+            metrics = simulate(load_scenario(args.config, args.rerun), out, progress=not args.quiet)
+            print("\n".join(summary_lines(metrics, out)))
+            return 0 if metrics.passed else 1
+        if args.seeds < 1 or args.workers < 1:
+            raise ValueError("--seeds and --workers must be at least 1")
+        first = cfg.seed if args.first_seed is None else args.first_seed
+        seeds = list(range(first, first + args.seeds))
+        out = Path(args.out) if args.out else Path("runs") / f"{stem}_sweep"
+        runs = run_sweep(args.config, seeds, workers=args.workers, address=args.address, progress=not args.quiet,
+                         warn=lambda m: print(f"warning: {m}", file=sys.stderr))
+    except (ConfigError, SweepError, ValueError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    s = write_results(runs, out, f"{stem}, seeds {seeds[0]}..{seeds[-1]}", cfg.safety.separation_m,
+                      figures=not args.no_figures)
+    print((out / "summary.md").read_text())
+    print(f"results: {out}/runs.csv, summary.md, summary.json" + ("" if args.no_figures else ", fig_sweep.png"))
+    return 0 if s["passed_every_check"] == s["runs"] else 1
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="swarmdrop", description="Carrier-launched UAV swarm flight stack")
     sub = p.add_subparsers(dest="command", required=True)
@@ -86,6 +117,19 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-figures", action="store_true")
     r.add_argument("--check", action="store_true", help="exit 1 if any acceptance check fails")
     r.set_defaults(func=_cmd_run)
+    w = sub.add_parser("sweep", help="Monte Carlo over seeds, headless, on Dask (or in-process with --workers 1)")
+    w.add_argument("config", help="scenario YAML, e.g. configs/paper_40.yaml")
+    w.add_argument("--seeds", type=int, default=10, help="number of seeds (from the config's seed, or --first-seed)")
+    w.add_argument("--first-seed", type=int, default=None)
+    w.add_argument("--workers", type=int, default=os.cpu_count() or 1,
+                   help="local Dask worker processes (default: one per core; 1 = in-process, no Dask needed)")
+    w.add_argument("--address", default=None, help="an existing Dask scheduler, e.g. tcp://10.0.0.5:8786")
+    w.add_argument("--rerun", type=int, default=None, metavar="SEED",
+                   help="replay one seed in-process, writing its full run directory and figures")
+    w.add_argument("--out", help="results directory (default runs/<config name>_sweep)")
+    w.add_argument("--quiet", action="store_true")
+    w.add_argument("--no-figures", action="store_true")
+    w.set_defaults(func=_cmd_sweep)
     from companion.node import cli as agent_cli
     from sim_bridge.sitl import cli as sitl_cli
 

@@ -1,0 +1,219 @@
+"""`swarmdrop sweep`: Monte Carlo over seeds, headless, on Dask (or in-process).
+
+Every run is the headless scenario with one seed: the seed draws the release
+attitudes, the gusts, the link's losses and everything else random in the scenario,
+so `--rerun SEED` replays exactly one run. Runs go to a Dask cluster: a local one
+(`--workers W`, one single-threaded worker process per core) or an existing one
+(`--address tcp://host:8786`). With one worker and no address nothing of Dask is
+imported, so a plain install (without the `sweep` extra) still sweeps.
+
+A run that raises is kept, with its seed, its reason and its traceback.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import os
+import time
+import traceback
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+TRIM_VAR = "MALLOC_TRIM_THRESHOLD_"
+
+
+class SweepError(Exception):
+    """The sweep cannot start (no Dask for several workers, a cluster that does not answer)."""
+
+
+@dataclass(frozen=True)
+class SweepRun:
+    """One seed's outcome (SI units). ok False: the run raised (reason and trace say why),
+    and the figures are None."""
+
+    seed: int
+    ok: bool
+    wall_s: float
+    reason: str | None = None
+    trace: str | None = None
+    passed: bool = False
+    """Every acceptance check of the run passed."""
+    mission_completed: bool = False
+    all_stabilised: bool = False
+    completion_time_s: float | None = None
+    min_separation_m: float | None = None
+    pairs_below_safety_distance: int | None = None
+    min_obstacle_clearance_m: float | None = None
+    max_settle_time_s: float | None = None
+    mean_settle_time_s: float | None = None
+    final_max_deviation_m: float | None = None
+    sim_s: float | None = None
+    failed_checks: str = ""
+    """Names of the checks that failed, separated by spaces."""
+
+
+def run_one(config_path: str, seed: int) -> SweepRun:
+    """Fly the scenario headless with this seed (no launch study, no figures). Never raises:
+    an exception becomes a failed SweepRun with its traceback."""
+    t0 = time.perf_counter()
+    try:
+        from sim_bridge.headless import run_scenario
+        from sim_bridge.metrics import compute_metrics
+        from sim_bridge.simulate import load_scenario
+
+        cfg = load_scenario(config_path, seed)
+        cfg = dataclasses.replace(cfg, launch_study=dataclasses.replace(cfg.launch_study, enabled=False))
+        m = compute_metrics(run_scenario(cfg, progress=False), None)
+    except Exception as err:  # kept, not lost: the sweep reports it with the seed
+        return SweepRun(seed, False, time.perf_counter() - t0, reason=f"{type(err).__name__}: {err}",
+                        trace=traceback.format_exc())
+    st = m.stabilisation
+    return SweepRun(
+        seed, True, time.perf_counter() - t0, passed=m.passed, mission_completed=m.mission.completed,
+        all_stabilised=st.all_stabilised, completion_time_s=m.mission.completion_time_s,
+        min_separation_m=m.separation.min_pair_distance_m,
+        pairs_below_safety_distance=m.separation.pairs_below_safety_distance,
+        min_obstacle_clearance_m=m.obstacles.min_clearance_m, max_settle_time_s=st.max_settle_time_s,
+        mean_settle_time_s=st.mean_settle_time_s, final_max_deviation_m=m.formation_deviation.final_max_m,
+        sim_s=m.performance.sim_s, failed_checks=" ".join(k for k, ok in m.checks.items() if not ok),
+    )
+
+
+def _in_process(config_path: str, seeds: list[int]) -> Iterator[SweepRun]:
+    for s in seeds:
+        yield run_one(config_path, s)
+
+
+def _on_dask(config_path: str, seeds: list[int], workers: int, address: str | None,
+             warn: Callable[[str], None]) -> Iterator[SweepRun]:
+    try:
+        import dask
+        from distributed import Client, LocalCluster, as_completed
+    except ImportError:
+        raise SweepError("several workers or a cluster address need Dask: pip install 'swarmdrop[sweep]' "
+                         "(or run with --workers 1)") from None
+    cluster = None
+    if address is None:
+        # Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 in its workers, which made this
+        # numpy-heavy work about 1.9x slower here: unset it (None removes the variable).
+        with dask.config.set({f"distributed.nanny.pre-spawn-environ.{TRIM_VAR}": None}):
+            cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                   dashboard_address=None, host="127.0.0.1")
+        client = Client(cluster)
+    else:
+        try:
+            client = Client(address, timeout="10s")
+        except OSError as err:
+            raise SweepError(f"--address {address}: no Dask scheduler answers ({err})") from None
+        trimmed = {w: v for w, v in client.run(os.environ.get, TRIM_VAR).items() if v is not None}
+        if trimmed:
+            warn(f"{len(trimmed)} worker(s) of {address} run with {TRIM_VAR}={next(iter(trimmed.values()))}, "
+                 f"which slows this work; start them with `env -u {TRIM_VAR}`")
+    try:
+        futures = client.map(run_one, [config_path] * len(seeds), seeds, pure=False)
+        for fut in as_completed(futures):
+            yield fut.result()
+    finally:
+        client.close()
+        if cluster is not None:
+            cluster.close()
+
+
+def run_sweep(config_path: str | Path, seeds: list[int], workers: int = 1, address: str | None = None,
+              progress: bool = True, warn: Callable[[str], None] = print) -> list[SweepRun]:
+    """Fly every seed; returns the runs in seed order.
+
+    Raises:
+        SweepError: Dask missing for workers > 1 or an address, or the cluster does not answer.
+        ConfigError: the scenario does not load (checked once here, before anything is sent out).
+    """
+    from tqdm import tqdm
+
+    from sim_bridge.simulate import load_scenario
+
+    path = str(Path(config_path).resolve())
+    load_scenario(path)  # a bad config fails once, here, with its path and reason
+    it = _in_process(path, seeds) if workers <= 1 and address is None else _on_dask(path, seeds, workers, address, warn)
+    runs = []
+    with tqdm(total=len(seeds), unit="run", disable=not progress, desc="sweep") as bar:
+        for r in it:
+            runs.append(r)
+            bar.update(1)
+            bad = sum(not x.ok or not x.passed for x in runs)
+            bar.set_postfix_str(f"failed {bad}" if bad else "all passed", refresh=False)
+    return sorted(runs, key=lambda r: r.seed)
+
+
+def _pct(xs: list[float], p: float) -> float | None:
+    import numpy as np
+
+    return float(np.percentile(xs, p)) if xs else None
+
+
+def summary(runs: list[SweepRun], safety_distance_m: float) -> dict:
+    """The sweep's headline figures (JSON-ready)."""
+    ok = [r for r in runs if r.ok]
+    sep = [r.min_separation_m for r in ok if r.min_separation_m is not None]
+    settle = [r.max_settle_time_s for r in ok if r.max_settle_time_s is not None]
+    comp = [r.completion_time_s for r in ok if r.completion_time_s is not None]
+    n = len(runs)
+    return {
+        "runs": n, "crashed": n - len(ok), "passed_every_check": sum(r.passed for r in ok),
+        "mission_completed": sum(r.mission_completed for r in ok),
+        "runs_below_safety_distance": sum((r.pairs_below_safety_distance or 0) > 0 for r in ok),
+        "safety_distance_m": safety_distance_m,
+        "min_separation_m": {"min": min(sep) if sep else None, "p5": _pct(sep, 5), "median": _pct(sep, 50)},
+        "max_settle_time_s": {"median": _pct(settle, 50), "p95": _pct(settle, 95), "max": max(settle) if settle else None},
+        "completion_time_s": {"median": _pct(comp, 50), "p95": _pct(comp, 95)},
+        "wall_s_per_run": {"mean": sum(r.wall_s for r in runs) / n if n else None},
+    }
+
+
+def _fmt(x: float | None, digits: int = 2) -> str:
+    return "n/a" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}f}"
+
+
+def markdown(runs: list[SweepRun], s: dict, title: str) -> str:
+    """A Markdown summary: headline table, then every run that crashed or failed a check."""
+    n = max(s["runs"], 1)
+    lines = [f"# Sweep: {title}", "",
+             "| figure | value |", "|---|---|",
+             f"| runs | {s['runs']} ({s['crashed']} crashed) |",
+             f"| passed every check | {s['passed_every_check']} ({100 * s['passed_every_check'] / n:.1f} %) |",
+             f"| mission completed | {s['mission_completed']} ({100 * s['mission_completed'] / n:.1f} %) |",
+             f"| runs with a pair closer than {s['safety_distance_m']:g} m | {s['runs_below_safety_distance']} |",
+             f"| minimum separation: min / p5 / median | {_fmt(s['min_separation_m']['min'])} / "
+             f"{_fmt(s['min_separation_m']['p5'])} / {_fmt(s['min_separation_m']['median'])} m |",
+             f"| worst recovery (settle) time per run: median / p95 / max | {_fmt(s['max_settle_time_s']['median'])} / "
+             f"{_fmt(s['max_settle_time_s']['p95'])} / {_fmt(s['max_settle_time_s']['max'])} s |",
+             f"| mission completion time: median / p95 | {_fmt(s['completion_time_s']['median'], 1)} / "
+             f"{_fmt(s['completion_time_s']['p95'], 1)} s |", ""]
+    bad = [r for r in runs if not r.ok or not r.passed]
+    if bad:
+        lines += ["## Runs that crashed or failed a check (replay with `swarmdrop sweep CONFIG --rerun SEED`)", "",
+                  "| seed | outcome |", "|---|---|"]
+        lines += [f"| {r.seed} | {r.reason if not r.ok else 'failed: ' + r.failed_checks} |" for r in bad]
+    return "\n".join(lines) + "\n"
+
+
+def write_results(runs: list[SweepRun], out_dir: Path, title: str, safety_distance_m: float,
+                  figures: bool = True) -> dict:
+    """runs.csv, summary.md, summary.json, failures/SEED.txt (tracebacks) and figures."""
+    from sim_bridge.simulate import write_csv
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_csv(out_dir / "runs.csv", [{k: v for k, v in dataclasses.asdict(r).items() if k != "trace"} for r in runs])
+    for r in runs:
+        if r.trace:
+            (out_dir / "failures").mkdir(exist_ok=True)
+            (out_dir / "failures" / f"{r.seed}.txt").write_text(f"seed {r.seed}: {r.reason}\n\n{r.trace}")
+    s = summary(runs, safety_distance_m)
+    (out_dir / "summary.json").write_text(json.dumps(s, indent=2))
+    (out_dir / "summary.md").write_text(markdown(runs, s, title))
+    if figures and any(r.ok for r in runs):
+        from sim_bridge.figures_studies import fig_sweep
+
+        fig_sweep(runs, safety_distance_m, out_dir)
+    return s
