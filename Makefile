@@ -4,7 +4,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo demo-headless test bench fuzz clean
+.PHONY: demo demo-headless sweep test bench fuzz clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV)
@@ -19,6 +19,9 @@ demo: $(STAMP)
 
 demo-headless: $(STAMP)
 	$(BIN)/swarmdrop simulate configs/paper_40.yaml --out runs/paper_40_headless
+
+sweep: $(STAMP)
+	$(BIN)/swarmdrop sweep configs/paper_40_disturbed.yaml --seeds 100 --out runs/paper_40_disturbed_sweep
 
 test: $(STAMP)
 	$(BIN)/ruff check .

@@ -7,7 +7,9 @@
 - fleet.json: `swarmdrop run` (SITL + one agent process per vehicle) on paper_40 in real
   time, the largest fleet that keeps real time, and one agent's start-up time and PSS;
 - signing.json: paper_40 unsigned and with `--signing`, back to back (the CPU signing costs),
-  and µs to sign and check one frame.
+  and µs to sign and check one frame;
+- sweep.json: `swarmdrop sweep` on paper_40 over 100 seeds on a local Dask cluster: wall time,
+  runs per minute, parallel efficiency.
 
 `python -m bench.run NAME ...` runs only the named parts.
 """
@@ -67,7 +69,7 @@ def load_scenario_small(cfg):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parts = set(sys.argv[1:] if argv is None else argv) or {"physics", "paper_40", "sitl", "wire", "fleet", "signing"}
+    parts = set(sys.argv[1:] if argv is None else argv) or {"physics", "paper_40", "sitl", "wire", "fleet", "signing", "sweep"}
     if "physics" in parts:
         from bench.bench_physics import run as run_physics
 
@@ -94,6 +96,10 @@ def main(argv: list[str] | None = None) -> int:
         with tempfile.TemporaryDirectory(prefix="swarmdrop-bench-") as d:
             _write("signing", {"name": "signing", "description": "paper_40 fleet, unsigned vs --signing",
                                **signing(Path(d))})
+    if "sweep" in parts:
+        from bench.bench_sweep import run as run_sweep
+
+        _write("sweep", run_sweep())
     return 0
 
 

@@ -1,0 +1,34 @@
+"""Sweep throughput: paper_40 over 100 seeds on a local Dask cluster (one worker per core).
+
+Parallel efficiency = (sum of the runs' own wall times) / (workers x sweep wall time): 1.0
+means the cluster added nothing to the runs. Per-run time includes each worker's first
+compile (numba cache load and the agent kernels), which the first runs on a worker pay.
+"""
+from __future__ import annotations
+
+import os
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run(seeds: int = 100, workers: int | None = None, config: str = "configs/paper_40.yaml") -> dict:
+    import numpy as np
+
+    from sim_bridge.sweep import run_sweep
+
+    workers = workers or os.cpu_count() or 1
+    t0 = time.perf_counter()
+    runs = run_sweep(str(ROOT / config), list(range(1, seeds + 1)), workers=workers, progress=False)
+    wall = time.perf_counter() - t0
+    per_run = np.array([r.wall_s for r in runs])
+    return {
+        "name": "sweep", "config": config, "seeds": seeds, "workers": workers, "wall_s": wall,
+        "runs_per_minute": 60.0 * seeds / wall,
+        "run_wall_s": {"mean": float(per_run.mean()), "p50": float(np.median(per_run)), "max": float(per_run.max())},
+        "parallel_efficiency": float(per_run.sum() / (workers * wall)),
+        "ideal_wall_s_from_mean_run": float(per_run.mean() * seeds / workers),
+        "passed_every_check": int(sum(r.ok and r.passed for r in runs)),
+        "target": "100 seeds of paper_40 in <= 180 s wall, >= 85 % parallel efficiency",
+    }
