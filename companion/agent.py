@@ -15,7 +15,13 @@ Phases and their transitions (docs/agent.md):
                             commands nothing: the autopilot owns the recovery;
     ASSEMBLE  -> TRANSIT    at t_go, agreed by the swarm (docs/swarm.md);
     TRANSIT   -> HOVER      when the formation centre reaches the last waypoint;
-    HOVER     -> LAND       land_after_hover_s after hover began, if configured.
+    HOVER     -> LAND       land_after_hover_s after hover began, if configured;
+    any of ASSEMBLE..LAND -> FAILED  the vehicle has lost control: tilt beyond
+                            lost_tilt_deg for lost_dwell_s (PX4's failure detector
+                            thresholds). FAILED is final: the agent commands nothing
+                            (its autopilot's failsafe owns the vehicle) and keeps
+                            publishing, so that its neighbours avoid it and leave it
+                            out of consensus and of the transit-start quorum.
 """
 from __future__ import annotations
 
@@ -40,11 +46,12 @@ class Phase(IntEnum):
     TRANSIT = 3
     HOVER = 4
     LAND = 5
+    FAILED = 6
 
 
 FORMATION_PHASES = (Phase.ASSEMBLE, Phase.TRANSIT, Phase.HOVER)
 # Plain ints for the per-tick code: IntEnum attribute access costs ~1 us each.
-_LAUNCH, _STABILISE, _ASSEMBLE, _TRANSIT, _HOVER, _LAND = (int(p) for p in Phase)
+_LAUNCH, _STABILISE, _ASSEMBLE, _TRANSIT, _HOVER, _LAND, _FAILED = (int(p) for p in Phase)
 IN_FORMATION = np.isin(np.arange(len(Phase)), [int(p) for p in FORMATION_PHASES])  # lookup by phase value
 GHOST_COLUMN_M = 100.0
 """Depth of a silent vehicle's column when the ground height is unknown."""
@@ -132,9 +139,11 @@ class Agent:
         self.assembled = np.zeros(n, dtype=bool)
         self.t_go_s = np.full(n, np.nan)
         self.go_ready_since_s = np.full(n, np.nan)
+        self.lost_since_s = np.full(n, np.nan)
         cfg = mission.cfg
         self._k = gains_vector(cfg.consensus)
         self._cos_tilt_max = math.cos(math.radians(cfg.phases.stable_tilt_deg))
+        self._cos_lost = math.cos(math.radians(cfg.phases.lost_tilt_deg))
         self._h_vel, self._h_acc = np.empty((mission.n, 3)), np.empty((mission.n, 3))
         k = self._n_obstacles = len(mission.obstacle_radii_m)
         # Static obstacles as zero-length capsules, one copy per own row (read-only views).
@@ -165,6 +174,13 @@ class Agent:
             if ph.land_after_hover_s is not None:
                 phase[(phase == _HOVER) & (t_s >= t_hover + ph.land_after_hover_s)] = _LAND
 
+        # Loss of control (a rotor gone): judged only once the launch recovery is over,
+        # since a tumbling vehicle in STABILISE is the normal case there.
+        tilted = (phase >= _ASSEMBLE) & (phase != _FAILED) & valid & (cos_tilt < self._cos_lost)
+        self.lost_since_s[tilted & np.isnan(self.lost_since_s)] = t_s
+        self.lost_since_s[~tilted] = np.nan
+        phase[tilted & (t_s - self.lost_since_s >= ph.lost_dwell_s - 1e-9)] = _FAILED
+
     def _agree_t_go(self, t_s: float, view: SwarmView, age: np.ndarray) -> None:
         """The transit-start rule (docs/swarm.md): adopt the earliest t_go heard; with
         none, propose t + go_margin_s (rounded up to go_quantum_s) once this vehicle
@@ -177,13 +193,15 @@ class Agent:
         if not pending.any():
             return
         r, ids = self._rows, self.ids
-        alive = age <= sw.peer_timeout_s
-        alive[r, ids] = True
+        failed = view.phase == _FAILED  # heard to have lost control: not waited for
+        failed[r, ids] = self.phase == _FAILED
+        alive = (age <= sw.peer_timeout_s) & ~failed
+        alive[r, ids] = ~failed[r, ids]
         asm = view.assembled()
         asm[r, ids] = self.assembled
-        cond = self.assembled & np.all(asm | ~alive, axis=1)
+        cond = self.assembled & ~failed[r, ids] & np.all(asm | ~alive, axis=1)
         self.go_ready_since_s = np.where(cond, np.fmin(self.go_ready_since_s, t_s), np.nan)
-        everyone = np.sum(alive & asm, axis=1) == n_veh
+        everyone = np.sum((alive & asm) | failed, axis=1) == n_veh
         propose = pending & cond & (everyone | (t_s - self.go_ready_since_s >= sw.go_wait_s - 1e-9))
         if propose.any():
             q = self.mission.cfg.phases.go_quantum_s

@@ -79,6 +79,11 @@ class PhaseConfig:
     land_after_hover_s: float | None = Field(default=None, ge=0)
     """Land this long after hover begins; None = hold station."""
     land_speed_mps: float = Field(default=0.7, gt=0)
+    lost_tilt_deg: float = Field(default=60.0, gt=0, le=180)
+    """In a formation phase, tilt beyond this for lost_dwell_s means loss of control
+    (phase FAILED). PX4's failure detector uses 60 deg (FD_FAIL_R, FD_FAIL_P)."""
+    lost_dwell_s: float = Field(default=0.3, ge=0)
+    """How long the tilt must last (PX4: FD_FAIL_R_TTRI, FD_FAIL_P_TTRI, 0.3 s)."""
 
 
 @dataclass(config=STRICT)

@@ -61,7 +61,9 @@ def fig_sweep(runs, safety_distance_m: float, out: Path) -> Path:
         ax.legend(loc="lower right", fontsize=8)
     axs[0].axvline(safety_distance_m, color="red", linestyle="--", linewidth=1)
     passed = sum(r.ok and r.passed for r in runs)
-    fig.suptitle(f"{len(runs)} seeds: {passed} passed every check")
+    met = sum(r.target_met for r in runs)
+    fig.suptitle(f"{len(runs)} seeds: {met} finished with every healthy vehicle and no collision, "
+                 f"{passed} passed every check")
     fig.tight_layout()
     p = out / "fig_sweep.png"
     fig.savefig(p, dpi=110)

@@ -3,7 +3,7 @@
 The loop is: release due vehicles from the carrier -> deliver the neighbour
 states the transport has due -> one batched Agent.step for every vehicle (the
 same Agent the MAVLink companion runs for one vehicle, its loops compiled) ->
-publish states at the swarm rate -> the autopilot model turns agent setpoints
+publish states at the swarm rate -> injected rotor failures due -> the autopilot model turns agent setpoints
 into inner-loop setpoints (throw recovery, hold, offboard) -> Physics.step for
 physics_rate/agent_rate steps with the setpoints held (the inner-loop geometric
 or PID controller runs at the physics rate) -> record.
@@ -26,6 +26,7 @@ from companion.swarm import SwarmView, swarm_due
 from sim_bridge.autopilot_model import hold_point, throw_recovered
 from sim_bridge.carrier import carrier_position_ned_m, release_times_s, sample_release_attitudes
 from sim_bridge.estimator import Estimator, to_true_frame
+from sim_bridge.faults import RotorFaults, resolve_rotor_failures
 from sim_bridge.jit import agent_kernels
 from sim_bridge.physics import Physics, hover_rotor_speed_radps
 from sim_bridge.record import MissionTracker, RunResult
@@ -134,6 +135,7 @@ def run_scenario(cfg: ScenarioConfig, progress: bool = True, clock=None,
     agent = Agent(mission, ids, kernels=agent_kernels())
     transport = transport or make_transport(cfg.link, n, cfg.seed)
     estimator = Estimator(cfg.estimator, n, np.random.default_rng([cfg.seed, 0x455354])) if cfg.estimator.active else None
+    faults = RotorFaults(resolve_rotor_failures(cfg.faults, n, cfg.seed), n) if cfg.faults.active else None
     view = SwarmView.unknown(n, n)
     autopilot = AutopilotModel.docked(n)
     dt_agent = 1.0 / cfg.agent.rate_hz
@@ -174,10 +176,14 @@ def run_scenario(cfg: ScenarioConfig, progress: bool = True, clock=None,
         sp = autopilot.setpoint(state, out.setpoint)
         if estimator is not None:  # the autopilot flies on its estimate (sim_bridge/estimator.py)
             sp.pos_ned_m = to_true_frame(sp.pos_ned_m, estimator.offset_ned_m)
-        done = tracker.update(t, state, sp, released, out.phase, out.assembled, out.t_go_s)
+        if faults is not None:
+            faults.update(t)
+        done = tracker.update(t, state, sp, released, out.phase, out.assembled, out.t_go_s,
+                              failed_at_s=None if faults is None else faults.failed_at_s)
         if done or k == n_ticks:
             break
-        physics.step(state, sp, n_steps=sub_steps, active=released)
+        physics.step(state, sp, n_steps=sub_steps, active=released,
+                     rotor_scale=None if faults is None else faults.scale)
         vehicle_steps += sub_steps * int(released.sum())
         if int(t + dt_agent) != int(t):
             bar.update(1)

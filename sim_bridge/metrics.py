@@ -17,6 +17,7 @@ from sim_bridge.results import (
     MissionOutcome,
     ObstacleClearance,
     Performance,
+    RotorFailureOutcome,
     RunMetrics,
     Separation,
     Series,
@@ -69,6 +70,21 @@ def stabilisation(result: RunResult) -> list[VehicleSettle]:
     return rows
 
 
+def rotor_failures(result: RunResult) -> list[RotorFailureOutcome]:
+    """Per injected failure: detection by the vehicle's own agent and where it ended."""
+    out = []
+    ground = result.cfg.physics.ground_z_m
+    for v in np.flatnonzero(np.isfinite(result.failed_at_s)):
+        t_fail = float(result.failed_at_s[v])
+        t_det = _f(result.phase_entry_s[v, Phase.FAILED])
+        z = float(result.log["pos_ned_m"][-1, v, 2]) if len(result.log["t_s"]) else math.nan
+        out.append(RotorFailureOutcome(
+            vehicle=int(v) + 1, failed_at_s=t_fail, detected_at_s=t_det,
+            detection_latency_s=None if t_det is None else t_det - t_fail,
+            final_height_m=_f(ground - z) if ground is not None else None))
+    return out
+
+
 def _stat(values: list[float], fn) -> float | None:
     return _f(fn(values)) if values else None
 
@@ -108,7 +124,11 @@ def compute_metrics(result: RunResult, launch_study: list[LaunchComparison] | No
             safety_distance_m=cfg.safety.separation_m, min_pair_distance_m=_f(s.min_pair_dist_m),
             min_pair_time_s=_f(s.min_pair_time_s), min_pair_vehicles=[s.min_pair[0] + 1, s.min_pair[1] + 1],
             pairs_below_safety_distance=len(s.violating_pairs), sampled_at_hz=cfg.agent.rate_hz,
+            collision_distance_m=s.collision_m, collisions=len(s.colliding_pairs),
+            min_failed_distance_m=_f(s.min_failed_dist_m) if math.isfinite(s.min_failed_dist_m) else None,
+            failed_contacts=len(s.failed_contacts),
         ),
+        rotor_failures=rotor_failures(result),
         obstacles=ObstacleClearance(
             min_clearance_m=_f(s.min_clearance_m) if math.isfinite(s.min_clearance_m) else None,
             min_clearance_time_s=_f(s.min_clearance_time_s),
@@ -137,8 +157,11 @@ def _checks(m: RunMetrics, cfg) -> dict[str, bool]:
         "mission_completed": m.mission.completed,
         "final_formation_deviation_below_tol": (m.formation_deviation.final_max_m or math.inf) < cfg.completion_tol_m,
         "min_separation_ok": (m.separation.min_pair_distance_m or 0.0) >= cfg.safety.separation_m,
+        "no_collisions": m.separation.collisions == 0,
         "obstacle_clearance_ok": clearance is None or clearance >= cfg.safety.obstacle_margin_m,
     }
+    if m.rotor_failures:  # every failed vehicle's agent declared it, so its neighbours could drop it
+        checks["rotor_failures_detected"] = all(r.detection_latency_s is not None for r in m.rotor_failures)
     for c in m.launch_study or []:
         g = c.geometric
         if c.roll_deg == 90.0:  # issue 9: within 1.0 s, and better than PID on all three figures

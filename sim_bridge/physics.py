@@ -116,7 +116,8 @@ def _gusts(gust0, noise, phi, sig):
 
 
 @njit(cache=True)
-def _physics_loop(n_steps, active, pos, vel, rot, om, rotor, integ, sp, cprm, vprm, dt, ctrl, mot, wind, ground_z):
+def _physics_loop(n_steps, active, pos, vel, rot, om, rotor, integ, sp, cprm, vprm, dt, ctrl, mot, wind, ground_z,
+                  rotor_scale):
     n_wind = wind.shape[0]
     for i in range(pos.shape[0]):
         if not active[i]:
@@ -128,12 +129,16 @@ def _physics_loop(n_steps, active, pos, vel, rot, om, rotor, integ, sp, cprm, vp
         q = (rotor[i, 0], rotor[i, 1], rotor[i, 2], rotor[i, 3])
         xi = (integ[i, 0], integ[i, 1], integ[i, 2], integ[i, 3], integ[i, 4], integ[i, 5])
         spi = sp[i]
+        s0, s1, s2, s3 = rotor_scale[i, 0], rotor_scale[i, 1], rotor_scale[i, 2], rotor_scale[i, 3]
+        healthy = s0 == 1.0 and s1 == 1.0 and s2 == 1.0 and s3 == 1.0
         for k in range(n_steps):
             if ctrl == CTRL_GEOMETRIC:
                 f, m = geometric_core(p, v, r, w, spi, cprm)
             else:
                 f, m, xi = pid_core(p, v, r, w, spi, cprm, xi, dt)
             qc = allocate(f, m, vprm)
+            if not healthy:  # a failed rotor's command is 0 (sim_bridge.faults)
+                qc = (qc[0] * s0, qc[1] * s1, qc[2] * s2, qc[3] * s3)
             kw = k if n_wind > 1 else 0
             wd = (wind[kw, 0], wind[kw, 1], wind[kw, 2])
             p, v, r, w, q = rigid_body_step(p, v, r, w, q, qc, vprm, dt, mot, wd, ground_z)
@@ -178,6 +183,7 @@ class Physics:
         self._mot = motor_coeffs(vehicle.motor_time_constant_s, self.dt_s)
         self._ctrl = CTRL_GEOMETRIC if inner.controller == "geometric" else CTRL_PID
         self._shared_wind = isinstance(wind, WindField)
+        self._ones = np.ones((0, 4))
         self.wind_field = wind if isinstance(wind, WindField) else WindField(wind or WindConfig(), self.dt_s, self.rng)
 
     def warm_up(self) -> None:
@@ -203,7 +209,7 @@ class Physics:
         return self.wind_field.advance(n_steps)
 
     def step(self, state: FleetState, setpoint: FleetSetpoint, n_steps: int = 1,
-             active: np.ndarray | None = None) -> None:
+             active: np.ndarray | None = None, rotor_scale: np.ndarray | None = None) -> None:
         """Advance every active vehicle n_steps physics steps in place; controller (geometric
         or PID per inner.controller) runs every physics step on the held setpoint. Inactive
         vehicles are untouched.
@@ -212,6 +218,8 @@ class Physics:
             state: FleetState (N), modified in place.
             setpoint: FleetSetpoint (N), held for the n_steps.
             active: (N,) bool mask, default all.
+            rotor_scale: (N, 4) factor on each rotor's speed command (1 healthy, 0 a failed
+                rotor: sim_bridge.faults.RotorFaults.scale); default all 1.
         Raises:
             ValueError: on size mismatch or negative n_steps.
         """
@@ -225,6 +233,12 @@ class Physics:
             raise ValueError(f"active must have shape ({n},)")
         if n_steps == 0 or n == 0:
             return
+        if rotor_scale is None:
+            if self._ones.shape[0] != n:
+                self._ones = np.ones((n, 4))
+            rotor_scale = self._ones
+        elif rotor_scale.shape != (n, 4):
+            raise ValueError(f"rotor_scale must have shape ({n}, 4)")
         arrays = []
         for name in _FIELDS:
             a = getattr(state, name)
@@ -232,7 +246,8 @@ class Physics:
                 a = np.ascontiguousarray(a, np.float64)
             arrays.append(a)
         _physics_loop(int(n_steps), act, *arrays, pack_setpoint(setpoint), self._cprm, self._vprm, self.dt_s,
-                      self._ctrl, self._mot, self._wind_sequence(int(n_steps)), self.ground_z_m)
+                      self._ctrl, self._mot, self._wind_sequence(int(n_steps)), self.ground_z_m,
+                      np.ascontiguousarray(rotor_scale, np.float64))
         for name, a in zip(_FIELDS, arrays):
             if a is not getattr(state, name):
                 getattr(state, name)[...] = a

@@ -29,7 +29,12 @@ from sim_bridge.scenario import ScenarioConfig
 
 @dataclass
 class SafetyTracker:
-    """Running minima of separation and obstacle clearance, sampled every agent tick."""
+    """Running minima of separation and obstacle clearance, sampled every agent tick.
+
+    Pairs of healthy vehicles are judged against separation_m and collision_m; a vehicle
+    whose rotor has failed (sim_bridge.faults) is tracked apart: how close it came to a
+    healthy one, and which healthy ones it touched (within collision_m).
+    """
 
     separation_m: float
     min_pair_dist_m: float = math.inf
@@ -39,9 +44,26 @@ class SafetyTracker:
     min_clearance_m: float = math.inf
     min_clearance_time_s: float = math.nan
     min_clearance_vehicle: int = -1
+    collision_m: float = 0.2
+    colliding_pairs: set[tuple[int, int]] = field(default_factory=set)
+    """Healthy pairs whose centres came within collision_m."""
+    min_failed_dist_m: float = math.inf
+    """Closest approach of a failed vehicle to a healthy one."""
+    failed_contacts: set[tuple[int, int]] = field(default_factory=set)
+    """(failed, healthy) pairs within collision_m."""
 
-    def update(self, t_s: float, ids: np.ndarray, pos: np.ndarray, mission: Mission) -> None:
-        """ids: (k,) vehicle ids of the airborne vehicles, pos: (k, 3) their positions."""
+    def update(self, t_s: float, ids: np.ndarray, pos: np.ndarray, mission: Mission,
+               healthy: np.ndarray | None = None) -> None:
+        """ids: (k,) vehicle ids of the airborne vehicles, pos: (k, 3) their positions,
+        healthy: (k,) bool, no rotor failed (default all)."""
+        if healthy is not None and not healthy.all():
+            bad = ~healthy
+            if healthy.any():
+                d = np.linalg.norm(pos[bad][:, None, :] - pos[healthy][None], axis=2)
+                self.min_failed_dist_m = min(self.min_failed_dist_m, float(d.min()))
+                for a, b in zip(*np.nonzero(d < self.collision_m)):
+                    self.failed_contacts.add((int(ids[bad][a]), int(ids[healthy][b])))
+            ids, pos = ids[healthy], pos[healthy]
         if len(ids) >= 2:
             d_min, i, j, n_close = _closest_pair(pos, self.separation_m)
             if d_min < self.min_pair_dist_m:
@@ -51,7 +73,10 @@ class SafetyTracker:
                 d = pdist(pos)
                 for k in np.flatnonzero(d < self.separation_m):
                     a, b = _pair_from_condensed(int(k), len(ids))
-                    self.violating_pairs.add((int(ids[a]), int(ids[b])))
+                    pair = (int(ids[a]), int(ids[b]))
+                    self.violating_pairs.add(pair)
+                    if d[k] < self.collision_m:
+                        self.colliding_pairs.add(pair)
         if len(ids) and len(mission.obstacle_radii_m):
             gap = (
                 np.linalg.norm(pos[:, None, :] - mission.obstacle_centres_ned_m[None], axis=2)
@@ -61,6 +86,23 @@ class SafetyTracker:
             if gap[k] < self.min_clearance_m:
                 self.min_clearance_m, self.min_clearance_time_s = float(gap[k]), t_s
                 self.min_clearance_vehicle = int(ids[k[0]])
+
+    def to_json(self) -> dict:
+        return {"separation_m": self.separation_m, "min_pair_dist_m": self.min_pair_dist_m,
+                "min_pair_time_s": self.min_pair_time_s, "min_pair": list(self.min_pair),
+                "violating_pairs": sorted(list(p) for p in self.violating_pairs),
+                "min_clearance_m": self.min_clearance_m, "min_clearance_time_s": self.min_clearance_time_s,
+                "min_clearance_vehicle": self.min_clearance_vehicle, "collision_m": self.collision_m,
+                "colliding_pairs": sorted(list(p) for p in self.colliding_pairs),
+                "min_failed_dist_m": self.min_failed_dist_m,
+                "failed_contacts": sorted(list(p) for p in self.failed_contacts)}
+
+    @classmethod
+    def from_json(cls, sf: dict) -> "SafetyTracker":
+        return cls(sf["separation_m"], sf["min_pair_dist_m"], sf["min_pair_time_s"], tuple(sf["min_pair"]),
+                   {tuple(p) for p in sf["violating_pairs"]}, sf["min_clearance_m"], sf["min_clearance_time_s"],
+                   sf["min_clearance_vehicle"], sf["collision_m"], {tuple(p) for p in sf["colliding_pairs"]},
+                   sf["min_failed_dist_m"], {tuple(p) for p in sf["failed_contacts"]})
 
 
 @njit(cache=True)
@@ -144,6 +186,8 @@ class RunResult:
     vehicle_steps: int
     link: LinkStats = field(default_factory=LinkStats)
     """Neighbour-transport statistics (NeighbourTransport.stats or the SITL's radio medium)."""
+    failed_at_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """(N,) mission time of each vehicle's injected rotor failure (NaN: healthy)."""
 
 
 
@@ -160,7 +204,8 @@ class MissionTracker:
         n = mission.n
         self.cfg, self.mission, self.log_every = cfg, mission, log_every
         self.rec = Recorder()
-        self.safety = SafetyTracker(cfg.safety.separation_m)
+        self.safety = SafetyTracker(cfg.safety.separation_m, collision_m=cfg.safety.collision_m)
+        self.failed_at_s = np.full(n, np.nan)
         self.phase = np.zeros(n, dtype=np.int8)
         self.phase_entry = np.full((n, len(Phase)), np.nan)
         self.phase_entry[:, Phase.LAUNCH] = 0.0
@@ -172,12 +217,20 @@ class MissionTracker:
 
     def update(self, t_s: float, state: FleetState, inner_sp: FleetSetpoint, released: np.ndarray,
                phase: np.ndarray, assembled: np.ndarray, t_go_s: np.ndarray,
-               counted: np.ndarray | None = None) -> bool:
+               counted: np.ndarray | None = None, failed_at_s: np.ndarray | None = None) -> bool:
         """One sample; returns True once the mission has been complete for completion_hold_s.
 
         counted: (N,) bool, the vehicles completion is judged on (default all); a fleet
         run leaves out vehicles whose agent has died (their autopilot holds and lands).
+        failed_at_s: (N,) time of each vehicle's injected rotor failure (NaN healthy):
+        a failed vehicle leaves completion and the healthy-pair safety figures from then.
         """
+        healthy = None
+        if failed_at_s is not None:
+            self.failed_at_s = np.asarray(failed_at_s, float).copy()
+            healthy = ~(self.failed_at_s <= t_s)
+            if not healthy.all():
+                counted = healthy if counted is None else (np.asarray(counted, bool) & healthy)
         for v in np.flatnonzero(phase != self.phase):
             self.phase_entry[v, phase[v]] = t_s
         self.phase = np.array(phase, dtype=np.int8)
@@ -191,7 +244,8 @@ class MissionTracker:
         m = self.mission
         slot = m.slot_ned_m(m.tau_s(t_s, self.t_go_s))
         airborne = np.flatnonzero(released)
-        self.safety.update(t_s, airborne, state.pos_ned_m[airborne], m)
+        self.safety.update(t_s, airborne, state.pos_ned_m[airborne], m,
+                           None if healthy is None else healthy[airborne])
         if self.updates % self.log_every == 0:
             self.rec.add(t_s, state, inner_sp, slot, self.phase, counted)
         self.updates += 1
@@ -205,7 +259,7 @@ class MissionTracker:
         return RunResult(self.cfg, self.mission, self.rec.arrays(), np.asarray(release_s, float),
                          np.asarray(release_pos_ned_m, float), self.phase_entry, self.safety, self.t_go_s,
                          self.t_go_spread_s, self.t_all_assembled, self.t_complete, wall_s, sim_s, vehicle_steps,
-                         link)
+                         link, self.failed_at_s.copy())
 
 
 def save_log(result: RunResult, out_dir: Path) -> Path:
@@ -227,11 +281,8 @@ def save_run(result: RunResult, out_dir: Path) -> None:
     s = result.safety
     info = {name: getattr(result, name) for name in _SCALARS}
     info["link"] = dataclasses.asdict(result.link)
-    info["safety"] = {"separation_m": s.separation_m, "min_pair_dist_m": s.min_pair_dist_m,
-                      "min_pair_time_s": s.min_pair_time_s, "min_pair": list(s.min_pair),
-                      "violating_pairs": sorted(list(p) for p in s.violating_pairs),
-                      "min_clearance_m": s.min_clearance_m, "min_clearance_time_s": s.min_clearance_time_s,
-                      "min_clearance_vehicle": s.min_clearance_vehicle}
+    info["safety"] = s.to_json()
+    info["failed_at_s"] = [None if math.isnan(x) else x for x in result.failed_at_s.tolist()]
     (out_dir / "run.json").write_text(json.dumps(info, indent=1, allow_nan=True))
 
 
@@ -239,12 +290,11 @@ def load_run(out_dir: Path, cfg: ScenarioConfig) -> RunResult:
     """The RunResult save_run wrote (cfg: the same scenario)."""
     info = json.loads((out_dir / "run.json").read_text())
     data = dict(np.load(out_dir / "telemetry.npz"))
-    sf = info["safety"]
-    safety = SafetyTracker(sf["separation_m"], sf["min_pair_dist_m"], sf["min_pair_time_s"], tuple(sf["min_pair"]),
-                           {tuple(p) for p in sf["violating_pairs"]}, sf["min_clearance_m"],
-                           sf["min_clearance_time_s"], sf["min_clearance_vehicle"])
+    safety = SafetyTracker.from_json(info["safety"])
+    failed_at = np.array([np.nan if x is None else x for x in info["failed_at_s"]], float)
     extra = ("release_s", "release_pos_ned_m", "phase_entry_s", "offsets_ned_m")
     log = {k: v for k, v in data.items() if k not in extra}
     return RunResult(cfg, Mission(cfg.mission), log, data["release_s"], data["release_pos_ned_m"],
                      data["phase_entry_s"], safety, info["t_go_s"], info["t_go_spread_s"], info["t_all_assembled_s"],
-                     info["t_complete_s"], info["wall_s"], info["sim_s"], info["vehicle_steps"], LinkStats.from_json(info["link"]))
+                     info["t_complete_s"], info["wall_s"], info["sim_s"], info["vehicle_steps"], LinkStats.from_json(info["link"]),
+                     failed_at)

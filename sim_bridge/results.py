@@ -133,6 +133,27 @@ class Separation:
     """1-based ids of the closest pair."""
     pairs_below_safety_distance: int
     sampled_at_hz: float
+    collision_distance_m: float = 0.2
+    collisions: int = 0
+    """Pairs of healthy vehicles whose centres came within collision_distance_m."""
+    min_failed_distance_m: float | None = None
+    """Closest approach of a vehicle with a failed rotor to a healthy one (None: no failure)."""
+    failed_contacts: int = 0
+    """(failed, healthy) pairs within collision_distance_m."""
+
+
+@dataclass(frozen=True)
+class RotorFailureOutcome:
+    """One injected rotor failure: when it came, when the vehicle's own agent declared
+    loss of control (phase FAILED), and where the vehicle ended up."""
+
+    vehicle: int
+    """1-based."""
+    failed_at_s: float
+    detected_at_s: float | None
+    detection_latency_s: float | None
+    final_height_m: float | None
+    """Height above the ground at the end of the run (0: it came down)."""
 
 
 @dataclass(frozen=True)
@@ -179,6 +200,7 @@ class RunMetrics:
     obstacles: ObstacleClearance
     mission: MissionOutcome
     performance: Performance
+    rotor_failures: list[RotorFailureOutcome] = field(default_factory=list)
     launch_study: list[LaunchComparison] | None = None
     launch_so3: So3Study | None = None
     """Both controllers over releases at random attitudes (summary in JSON; per draw in launch_so3.csv)."""
@@ -201,6 +223,8 @@ class RunMetrics:
                     out[f.name] = value.summary()
             elif dataclasses.is_dataclass(value):
                 out[f.name] = dataclasses.asdict(value)  # type: ignore[arg-type]
+            elif f.name == "rotor_failures":
+                out[f.name] = [dataclasses.asdict(r) for r in value]
             else:
                 out[f.name] = value
         return out

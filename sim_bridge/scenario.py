@@ -9,6 +9,7 @@ from companion.mission import MissionConfig
 from companion.params import InnerLoopConfig, VehicleParams
 from sim_bridge.carrier import CarrierConfig
 from sim_bridge.estimator import EstimatorConfig
+from sim_bridge.faults import FaultsConfig
 from sim_bridge.physics import WindConfig
 from sim_bridge.transport import LinkConfig
 
@@ -32,6 +33,9 @@ class SafetyConfig:
     separation_m: float = Field(default=1.0, gt=0)
     """Pairs closer than this count as separation violations."""
     obstacle_margin_m: float = Field(default=1.0, ge=0)
+    collision_m: float = Field(default=0.2, gt=0)
+    """Two vehicles whose centres come closer than this collide: a Crazyflie 2.x spans
+    about 0.13 m from prop tip to prop tip, and this adds a third for the props' reach."""
 
 
 @dataclass(config=STRICT)
@@ -88,6 +92,8 @@ class ScenarioConfig:
     """How published neighbour states travel (headless: perfect or lossy)."""
     estimator: EstimatorConfig = EstimatorConfig()
     """GPS/estimator errors and latency on the states the agents receive (headless and SITL)."""
+    faults: FaultsConfig = FaultsConfig()
+    """Injected rotor failures (headless and SITL; sim_bridge/faults.py)."""
 
     @model_validator(mode="after")
     def _rates_divide(self):
@@ -101,6 +107,17 @@ class ScenarioConfig:
             raise ValueError(
                 f"agent.rate_hz ({self.agent.rate_hz}) must be a whole multiple of output.log_rate_hz ({self.output.log_rate_hz})"
             )
+        if self.safety.collision_m > self.safety.separation_m:
+            raise ValueError(f"safety.collision_m ({self.safety.collision_m}) exceeds safety.separation_m "
+                             f"({self.safety.separation_m})")
+        n = self.mission.n_vehicles
+        for f in self.faults.rotor_failures:
+            if f.vehicle > n:
+                raise ValueError(f"faults.rotor_failures: vehicle {f.vehicle} but mission.n_vehicles is {n}")
+        if len({f.vehicle for f in self.faults.rotor_failures}) < len(self.faults.rotor_failures):
+            raise ValueError("faults.rotor_failures: a vehicle is listed twice (one failure per vehicle)")
+        if len(self.faults.rotor_failures) + self.faults.random_rotor_failures > n:
+            raise ValueError(f"faults: more rotor failures than the mission's {n} vehicles")
         if self.physics.wind.active and self.vehicle.drag_coeff_n_per_mps <= 0:
             raise ValueError(
                 "physics.wind is set but vehicle.drag_coeff_n_per_mps is 0: wind acts only through drag, so it would "

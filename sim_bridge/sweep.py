@@ -52,6 +52,20 @@ class SweepRun:
     sim_s: float | None = None
     failed_checks: str = ""
     """Names of the checks that failed, separated by spaces."""
+    collisions: int | None = None
+    """Pairs of healthy vehicles that came within the collision distance."""
+    rotor_failures: int = 0
+    failures_detected: int = 0
+    """Failed vehicles whose own agent declared loss of control."""
+    max_detection_latency_s: float | None = None
+    min_failed_distance_m: float | None = None
+    """Closest approach of a vehicle with a failed rotor to a healthy one."""
+
+    @property
+    def target_met(self) -> bool:
+        """The issue's sweep target for a run: the healthy vehicles reached formation and
+        finished the mission, and no two healthy vehicles collided."""
+        return self.ok and self.mission_completed and self.collisions == 0
 
 
 def run_one(config_path: str, seed: int) -> SweepRun:
@@ -70,6 +84,7 @@ def run_one(config_path: str, seed: int) -> SweepRun:
         return SweepRun(seed, False, time.perf_counter() - t0, reason=f"{type(err).__name__}: {err}",
                         trace=traceback.format_exc())
     st = m.stabilisation
+    lat = [f.detection_latency_s for f in m.rotor_failures if f.detection_latency_s is not None]
     return SweepRun(
         seed, True, time.perf_counter() - t0, passed=m.passed, mission_completed=m.mission.completed,
         all_stabilised=st.all_stabilised, completion_time_s=m.mission.completion_time_s,
@@ -78,6 +93,9 @@ def run_one(config_path: str, seed: int) -> SweepRun:
         min_obstacle_clearance_m=m.obstacles.min_clearance_m, max_settle_time_s=st.max_settle_time_s,
         mean_settle_time_s=st.mean_settle_time_s, final_max_deviation_m=m.formation_deviation.final_max_m,
         sim_s=m.performance.sim_s, failed_checks=" ".join(k for k, ok in m.checks.items() if not ok),
+        collisions=m.separation.collisions, rotor_failures=len(m.rotor_failures),
+        failures_detected=sum(f.detection_latency_s is not None for f in m.rotor_failures),
+        max_detection_latency_s=max(lat, default=None), min_failed_distance_m=m.separation.min_failed_distance_m,
     )
 
 
@@ -158,10 +176,18 @@ def summary(runs: list[SweepRun], safety_distance_m: float) -> dict:
     sep = [r.min_separation_m for r in ok if r.min_separation_m is not None]
     settle = [r.max_settle_time_s for r in ok if r.max_settle_time_s is not None]
     comp = [r.completion_time_s for r in ok if r.completion_time_s is not None]
+    lat = [r.max_detection_latency_s for r in ok if r.max_detection_latency_s is not None]
+    fd = [r.min_failed_distance_m for r in ok if r.min_failed_distance_m is not None]
     n = len(runs)
     return {
         "runs": n, "crashed": n - len(ok), "passed_every_check": sum(r.passed for r in ok),
         "mission_completed": sum(r.mission_completed for r in ok),
+        "target_met": sum(r.target_met for r in ok),
+        "healthy_collisions": sum(r.collisions or 0 for r in ok),
+        "rotor_failures": sum(r.rotor_failures for r in ok),
+        "rotor_failures_detected": sum(r.failures_detected for r in ok),
+        "detection_latency_s": {"median": _pct(lat, 50), "max": max(lat) if lat else None},
+        "min_failed_distance_m": min(fd) if fd else None,
         "runs_below_safety_distance": sum((r.pairs_below_safety_distance or 0) > 0 for r in ok),
         "safety_distance_m": safety_distance_m,
         "min_separation_m": {"min": min(sep) if sep else None, "p5": _pct(sep, 5), "median": _pct(sep, 50)},
@@ -181,6 +207,9 @@ def markdown(runs: list[SweepRun], s: dict, title: str) -> str:
     lines = [f"# Sweep: {title}", "",
              "| figure | value |", "|---|---|",
              f"| runs | {s['runs']} ({s['crashed']} crashed) |",
+             f"| healthy vehicles reached formation and finished, no collision | {s['target_met']} "
+             f"({100 * s['target_met'] / n:.1f} %) |",
+             f"| collisions between healthy vehicles (all runs) | {s['healthy_collisions']} |",
              f"| passed every check | {s['passed_every_check']} ({100 * s['passed_every_check'] / n:.1f} %) |",
              f"| mission completed | {s['mission_completed']} ({100 * s['mission_completed'] / n:.1f} %) |",
              f"| runs with a pair closer than {s['safety_distance_m']:g} m | {s['runs_below_safety_distance']} |",
@@ -189,7 +218,14 @@ def markdown(runs: list[SweepRun], s: dict, title: str) -> str:
              f"| worst recovery (settle) time per run: median / p95 / max | {_fmt(s['max_settle_time_s']['median'])} / "
              f"{_fmt(s['max_settle_time_s']['p95'])} / {_fmt(s['max_settle_time_s']['max'])} s |",
              f"| mission completion time: median / p95 | {_fmt(s['completion_time_s']['median'], 1)} / "
-             f"{_fmt(s['completion_time_s']['p95'], 1)} s |", ""]
+             f"{_fmt(s['completion_time_s']['p95'], 1)} s |"]
+    if s["rotor_failures"]:
+        lines += [f"| rotor failures / declared by the vehicle's agent | {s['rotor_failures']} / "
+                  f"{s['rotor_failures_detected']} |",
+                  f"| detection latency: median / max | {_fmt(s['detection_latency_s']['median'])} / "
+                  f"{_fmt(s['detection_latency_s']['max'])} s |",
+                  f"| closest approach of a failed vehicle to a healthy one | {_fmt(s['min_failed_distance_m'])} m |"]
+    lines.append("")
     bad = [r for r in runs if not r.ok or not r.passed]
     if bad:
         lines += ["## Runs that crashed or failed a check (replay with `swarmdrop sweep CONFIG --rerun SEED`)", "",
@@ -204,7 +240,8 @@ def write_results(runs: list[SweepRun], out_dir: Path, title: str, safety_distan
     from sim_bridge.simulate import write_csv
 
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_csv(out_dir / "runs.csv", [{k: v for k, v in dataclasses.asdict(r).items() if k != "trace"} for r in runs])
+    write_csv(out_dir / "runs.csv", [{**{k: v for k, v in dataclasses.asdict(r).items() if k != "trace"},
+                                      "target_met": r.target_met} for r in runs])
     for r in runs:
         if r.trace:
             (out_dir / "failures").mkdir(exist_ok=True)

@@ -1,4 +1,4 @@
-"""pymavlink/mavutil against a 4-vehicle SITL: heartbeat/modes, commands, params,
+"""pymavlink/mavutil against a 5-vehicle SITL: heartbeat/modes, commands, params,
 offboard loss, bad input. Each test flies its own vehicle so they do not interact."""
 from __future__ import annotations
 
@@ -22,7 +22,7 @@ from sim_bridge.sitl.testing import MavClient, local_endpoints, pack_frame, runn
 
 PX4 = dialect_named("px4")
 
-N = 4
+N = 5
 NAN = math.nan
 POS_ONLY_MASK = 0x9F8 | 0x400  # position, yaw ignored
 
@@ -178,6 +178,33 @@ def test_offboard_loss_hold_then_land(sitl):
         assert t_hold - t_stop <= 0.5 + 0.2
         assert c.wait("HEARTBEAT", lambda m: m.custom_mode == PX4.custom_mode(Mode.LAND), 3) is not None
         assert sitl.autopilots[k].mode == Mode.LAND
+    finally:
+        c.command(sysid, 400, 0, 21196)
+        c.close()
+
+
+def test_inject_motor_failure_needs_sys_failure_en_and_brings_the_vehicle_down(sitl):
+    """MAV_CMD_INJECT_FAILURE as PX4 takes it (`failure motor off -i 2`): refused until
+    SYS_FAILURE_EN is 1, then the motor stops and the hovering vehicle falls."""
+    k, sysid = 4, 5
+    c = vehicle_client(sitl, k)
+    try:
+        motor_off = (420, 101, 1, 2)  # FAILURE_UNIT_SYSTEM_MOTOR, FAILURE_TYPE_OFF, motor 2
+        assert c.command(sysid, *motor_off).result == mavlink.MAV_RESULT_DENIED
+        c.mav.param_set_send(sysid, 1, b"SYS_FAILURE_EN", encode_param_value(1, MAV_PARAM_TYPE_INT32),
+                             MAV_PARAM_TYPE_INT32)
+        assert c.wait("PARAM_VALUE", lambda m: m.param_id == "SYS_FAILURE_EN", 3)
+        assert c.command(sysid, 420, 100, 1, 1).result == mavlink.MAV_RESULT_UNSUPPORTED  # a sensor: not modelled
+        assert c.command(sysid, 420, 101, 1, NAN).result == mavlink.MAV_RESULT_DENIED
+        assert c.command(sysid, 176, 1, 4, 2).result == mavlink.MAV_RESULT_ACCEPTED  # Takeoff
+        assert c.command(sysid, 400, 1).result == mavlink.MAV_RESULT_ACCEPTED
+        assert c.wait("LOCAL_POSITION_NED", lambda m: m.z < -2.0, 10) is not None
+        assert c.command(sysid, *motor_off).result == mavlink.MAV_RESULT_ACCEPTED
+        assert sitl.rotor_faults.scale[k].tolist() == [1.0, 0.0, 1.0, 1.0]
+        assert c.wait("STATUSTEXT", lambda m: "motor failure" in m.text, 3) is not None
+        att = c.wait("ATTITUDE", lambda m: math.hypot(m.roll, m.pitch) > math.radians(60), 3)
+        assert att is not None  # it cannot hold attitude on three rotors
+        assert c.wait("LOCAL_POSITION_NED", lambda m: m.z > -0.5, 10) is not None  # down
     finally:
         c.command(sysid, 400, 0, 21196)
         c.close()

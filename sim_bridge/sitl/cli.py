@@ -55,7 +55,8 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def from_scenario(cfg, sc):
-    """The scenario's fleet, airframe, inner loop, carrier path, seed, home and swarm link."""
+    """The scenario's fleet, airframe, inner loop, carrier path, seed, home, swarm link and the
+    disturbed world (wind, estimator errors, rotor failures)."""
     from sim_bridge.sitl.config import HomeConfig
 
     ground = sc.physics.ground_z_m if sc.physics.ground_z_m is not None else cfg.ground_z_m
@@ -64,7 +65,7 @@ def from_scenario(cfg, sc):
     medium = dataclasses.replace(cfg.medium, link=sc.link, swarm_rate_hz=sc.mission.swarm.rate_hz)
     return dataclasses.replace(cfg, vehicles=sc.mission.n_vehicles, seed=sc.seed, vehicle=sc.vehicle,
                                inner_loop=sc.inner_loop, carrier=sc.carrier, ground_z_m=ground, home=home,
-                               wind=sc.physics.wind, estimator=sc.estimator,
+                               wind=sc.physics.wind, estimator=sc.estimator, faults=sc.faults,
                                medium=medium, spawn=dataclasses.replace(cfg.spawn, launch=sc.mission.launch))
 
 

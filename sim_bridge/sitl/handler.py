@@ -16,6 +16,7 @@ from companion.link.limits import INVALID_SETPOINTS, check_attitude, check_traje
 from companion.link.params import param_name  # noqa: E402
 from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target  # noqa: E402
 from companion.link.wire import signature_of  # noqa: E402
+from sim_bridge.faults import RotorFaults  # noqa: E402
 from sim_bridge.sitl.autopilot import (  # noqa: E402
     ACCEPTED,
     DENIED,
@@ -36,13 +37,16 @@ CMD_NAV_LAND = 21
 CMD_NAV_TAKEOFF = 22
 CMD_DO_SET_MODE = 176
 CMD_ARM_DISARM = 400
+CMD_INJECT_FAILURE = 420
+FAILURE_UNIT_SYSTEM_MOTOR = 101
+FAILURE_TYPE_OK, FAILURE_TYPE_OFF = 0, 1
 CMD_GET_MESSAGE_INTERVAL = 510
 CMD_SET_MESSAGE_INTERVAL = 511
 CMD_REQUEST_MESSAGE = 512
 CMD_REQUEST_AUTOPILOT_CAPABILITIES = 520
 CMD_SD_RELEASE = 31010  # MAV_CMD_USER_1: release this vehicle from the carrier now
 
-COMMAND_INT_OK = frozenset({CMD_NAV_LAND, CMD_NAV_TAKEOFF, CMD_DO_SET_MODE, CMD_ARM_DISARM,
+COMMAND_INT_OK = frozenset({CMD_NAV_LAND, CMD_NAV_TAKEOFF, CMD_DO_SET_MODE, CMD_ARM_DISARM, CMD_INJECT_FAILURE,
                             CMD_SET_MESSAGE_INTERVAL, CMD_REQUEST_MESSAGE, CMD_GET_MESSAGE_INTERVAL,
                             CMD_REQUEST_AUTOPILOT_CAPABILITIES, CMD_SD_RELEASE})
 
@@ -58,6 +62,7 @@ class SitlContext(Protocol):
     n: int
     sim_s: float
     home_alt_amsl_m: float
+    rotor_faults: RotorFaults
     autopilots: list[Autopilot]
     params: list[ParamTable]
     telemetry: TelemetryBuilder
@@ -163,6 +168,8 @@ class MessageRouter:
             result = ap.command_set_mode(p[0], p[1], p[2], now)
         elif command == CMD_SD_RELEASE:
             result = ap.command_release()
+        elif command == CMD_INJECT_FAILURE:
+            result = self._inject_failure(k, ap, p[0], p[1], p[2])
         elif command == CMD_SET_MESSAGE_INTERVAL:
             result = self._set_interval(k, p[0], p[1])
         elif command == CMD_GET_MESSAGE_INTERVAL:
@@ -178,6 +185,23 @@ class MessageRouter:
         self._ack(k, msg, endpoint, addr, command, result)
         if followup is not None:
             ctx.send(k, followup, endpoint, addr)
+
+    def _inject_failure(self, k, ap, unit, kind, instance) -> int:
+        """PX4's failure injection, motors only: DENIED unless SYS_FAILURE_EN is 1 (as PX4),
+        UNSUPPORTED for other units and types and on ArduPilot (which has no such command).
+        instance 0 stops every motor, 1..4 one of them. A stopped motor stays stopped
+        (FAILURE_TYPE_OK is refused: the simulated rotor does not come back)."""
+        if not ap.px4 or not all(math.isfinite(x) for x in (unit, kind, instance)):
+            return UNSUPPORTED if not ap.px4 else DENIED
+        if self.ctx.params[k].get("SYS_FAILURE_EN", 0.0) != 1.0:
+            return DENIED
+        if int(unit) != FAILURE_UNIT_SYSTEM_MOTOR or int(kind) != FAILURE_TYPE_OFF or not 0 <= int(instance) <= 4:
+            return UNSUPPORTED
+        rotors = range(4) if int(instance) == 0 else (int(instance) - 1,)
+        for r in rotors:
+            self.ctx.rotor_faults.fail_now(k, r, self.ctx.sim_s)
+        ap.events.append((SEV_CRITICAL, f"motor failure injected: {'all' if int(instance) == 0 else int(instance)}"))
+        return ACCEPTED
 
     def _set_interval(self, k, msgid_f, interval_us) -> int:
         if not (math.isfinite(msgid_f) and math.isfinite(interval_us)):

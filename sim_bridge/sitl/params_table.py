@@ -87,6 +87,7 @@ def _px4_specs(inner: InnerLoopConfig, sysid: int, hover_thrust: float) -> list[
         _f("GF_MAX_HOR_DIST", 0.0, 0.0, 1e6, "geofence horizontal radius from home, m (0 off)"),
         _f("GF_MAX_VER_DIST", 0.0, 0.0, 1e6, "geofence maximum height above home, m (0 off)"),
         _i("COM_THROW_EN", 1, 0, 1, "stabilise after carrier release (throw launch)"),
+        _i("SYS_FAILURE_EN", 0, 0, 1, "accept MAV_CMD_INJECT_FAILURE (motor off only in the SITL)"),
         _i("MAV_SYS_ID", sysid, 1, 250, "MAVLink system id (read only in the SITL)"),
         _i("MAV_COMP_ID", 1, 1, 250, "MAVLink component id (read only in the SITL)"),
         _i("MAV_TYPE", 2, 0, 30, "vehicle type (quadrotor)"),

@@ -42,6 +42,7 @@ from companion.state import FleetSetpoint, FleetState  # noqa: E402
 from companion.swarm import FLAG_ASSEMBLED, swarm_due  # noqa: E402
 from sim_bridge.carrier import carrier_position_ned_m, release_times_s, sample_release_attitudes  # noqa: E402
 from sim_bridge.estimator import Estimator, to_true_frame  # noqa: E402
+from sim_bridge.faults import RotorFaults, resolve_rotor_failures  # noqa: E402
 from sim_bridge.physics import Physics, WindField  # noqa: E402
 from sim_bridge.record import MissionTracker, RunResult  # noqa: E402
 from sim_bridge.record import warm_up as warm_up_tracker  # noqa: E402
@@ -164,6 +165,8 @@ class SitlServer:
         # One wind for the whole fleet (its own random stream), advanced once per tick and
         # shared by every parameter group's Physics, as headless.
         self.wind_field = WindField(cfg.wind, self.physics_dt_s, np.random.default_rng([cfg.seed, 0x57494E44]))
+        self.rotor_faults = RotorFaults(resolve_rotor_failures(cfg.faults, n, cfg.seed), n)
+        """Injected rotor failures: from the config (as headless) or MAV_CMD_INJECT_FAILURE."""
         self.vehicle_steps = 0
         """Physics steps taken, summed over vehicles (docked vehicles take none)."""
         self.ap_every = max(1, int(round(1.0 / (tc.autopilot_rate_hz * tc.tick_s))))
@@ -370,6 +373,7 @@ class SitlServer:
                                                         self.tick_s)
             self.fleet_sp.att_q_wxyz[m] = self._rate_q[m]
         self._fly_carrots()
+        self.rotor_faults.update(self.sim_s)
         active = np.fromiter((ap.needs_physics for ap in self.autopilots), bool, self.n)
         self.vehicle_steps += int(active.sum()) * self.steps_per_tick
         if active.any():
@@ -380,7 +384,8 @@ class SitlServer:
             for g, key in enumerate(self._group_keys):
                 mask = active & (self._group == g) if len(self._group_keys) > 1 else active
                 if mask.any():
-                    self._physics[key].step(self.state, sp, self.steps_per_tick, active=mask)
+                    self._physics[key].step(self.state, sp, self.steps_per_tick, active=mask,
+                                            rotor_scale=self.rotor_faults.scale)
         self.ticks += 1
         self.sim_s = self.ticks * self.tick_s
         if self.carrier:
@@ -413,7 +418,8 @@ class SitlServer:
         if md is not None:  # vehicles whose agent fell silent are not waited for (their autopilot holds)
             silent_us = (self._unix_us(self.sim_s) - md.latest_stamp_us) > SILENT_AGENT_S * 1e6
             counted = ~(silent_us & (md.latest_stamp_us >= 0))
-        if self.tracker.update(self.sim_s, self.state, self.fleet_sp, released, phase, assembled, t_go, counted):
+        if self.tracker.update(self.sim_s, self.state, self.fleet_sp, released, phase, assembled, t_go, counted,
+                               failed_at_s=self.rotor_faults.failed_at_s):
             if not self.mission_done and md is not None:
                 self._link_at_done = md.stats(self.sim_s)
             self.mission_done = True

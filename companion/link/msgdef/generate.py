@@ -162,7 +162,8 @@ def _project_enums(enums: ET.Element) -> None:
             (2, "ASSEMBLE", "Flying to its slot of the formation."),
             (3, "TRANSIT", "Flying the mission path in formation (after t_go)."),
             (4, "HOVER", "Holding the formation at the last waypoint."),
-            (5, "LAND", "Landing.")):
+            (5, "LAND", "Landing."),
+            (6, "FAILED", "Lost control (e.g. a rotor failed): avoid it, leave it out of consensus.")):
         e = _sub(phase, "entry", value=str(value), name=f"SWARMDROP_PHASE_{name}")
         _sub(e, "description", desc)
 

@@ -385,8 +385,10 @@ SWARMDROP_PHASE_HOVER = 4
 enums["SWARMDROP_PHASE"][4] = EnumEntry("SWARMDROP_PHASE_HOVER", """Holding the formation at the last waypoint.""")
 SWARMDROP_PHASE_LAND = 5
 enums["SWARMDROP_PHASE"][5] = EnumEntry("SWARMDROP_PHASE_LAND", """Landing.""")
-SWARMDROP_PHASE_ENUM_END = 6
-enums["SWARMDROP_PHASE"][6] = EnumEntry("SWARMDROP_PHASE_ENUM_END", """""")
+SWARMDROP_PHASE_FAILED = 6
+enums["SWARMDROP_PHASE"][6] = EnumEntry("SWARMDROP_PHASE_FAILED", """Lost control (e.g. a rotor failed): avoid it, leave it out of consensus.""")
+SWARMDROP_PHASE_ENUM_END = 7
+enums["SWARMDROP_PHASE"][7] = EnumEntry("SWARMDROP_PHASE_ENUM_END", """""")
 
 # message IDs
 MAVLINK_MSG_ID_BAD_DATA = -1
