@@ -34,6 +34,7 @@ import numpy as np
 
 from companion.control.apf import clip_sum_rows, pair_repulsion_rows, segment_repulsion_rows
 from companion.control.formation import consensus_rows, gains_vector
+from companion.control.kernel import kernel
 from companion.mission import Mission
 from companion.state import FleetSetpoint
 from companion.swarm import FLAG_ASSEMBLED, FLAG_OWN_VALID, FLAG_READY, SwarmStates, SwarmView
@@ -60,6 +61,47 @@ GHOST_COLUMN_M = 100.0
 def _norm_rows(a: np.ndarray) -> np.ndarray:
     """Euclidean norm along the last axis (cheaper than np.linalg.norm)."""
     return np.sqrt(np.einsum("...i,...i->...", a, a))
+
+
+@kernel
+def neighbour_sets_rows(rows, ids, p, v_pos, v_vel, v_flags, v_phase, age, stale_after_s, in_formation, cutoff_m,
+                        pred, usable, repel, ghost):
+    """Who each own row uses for what this tick (docs/agent.md, "Who takes part in what").
+
+    Row r (own vehicle ids[r], view row rows[r]) and vehicle j:
+      trusted: heard within stale_after_s, published with FLAG_OWN_VALID, position and
+        velocity finite (p.v not NaN), not the own vehicle;
+      pred[r, j] = p_j + v_j age (trusted), p_j otherwise;
+      usable: trusted and in a formation phase (consensus);
+      repel: trusted, airborne (phase >= STABILISE) and within cutoff_m of the own
+        position (pair repulsion; the kernel checks the cutoff again);
+      ghost: heard, not trusted, airborne, with a position, not the own vehicle.
+
+    Args: rows, ids (R,); p (R, 3); v_pos, v_vel (n, N, 3), v_flags, v_phase, age (n, N):
+        the whole view; in_formation: bool by phase value. Outputs pred (R, N, 3),
+        usable, repel, ghost (R, N) bool, written.
+    """
+    c2 = cutoff_m * cutoff_m
+    for r in range(rows.shape[0]):
+        vr, own = rows[r], ids[r]
+        for j in range(v_pos.shape[1]):
+            a = age[vr, j]
+            x0, x1, x2 = v_pos[vr, j, 0], v_pos[vr, j, 1], v_pos[vr, j, 2]
+            u0, u1, u2 = v_vel[vr, j, 0], v_vel[vr, j, 1], v_vel[vr, j, 2]
+            ph = v_phase[vr, j]
+            known = not math.isnan(x0 * u0 + x1 * u1 + x2 * u2)
+            tr = a <= stale_after_s and (v_flags[vr, j] & FLAG_OWN_VALID) != 0 and known and j != own
+            air = ph >= _STABILISE
+            if tr:
+                x0, x1, x2 = x0 + u0 * a, x1 + u1 * a, x2 + u2 * a
+            pred[r, j, 0], pred[r, j, 1], pred[r, j, 2] = x0, x1, x2
+            usable[r, j] = tr and in_formation[ph]
+            if tr and air:
+                d0, d1, d2 = x0 - p[r, 0], x1 - p[r, 1], x2 - p[r, 2]
+                repel[r, j] = d0 * d0 + d1 * d1 + d2 * d2 < c2
+            else:
+                repel[r, j] = False
+            ghost[r, j] = a < math.inf and not tr and air and not math.isnan(x0) and j != own
 
 
 @dataclass
@@ -90,6 +132,7 @@ class AgentKernels:
     the simulator passes numba-compiled twins of the same functions (sim_bridge.jit)."""
 
     consensus_rows: Callable = consensus_rows
+    neighbour_sets_rows: Callable = neighbour_sets_rows
     pair_repulsion_rows: Callable = pair_repulsion_rows
     segment_repulsion_rows: Callable = segment_repulsion_rows
     clip_sum_rows: Callable = clip_sum_rows
@@ -140,6 +183,7 @@ class Agent:
         self.t_go_s = np.full(n, np.nan)
         self.go_ready_since_s = np.full(n, np.nan)
         self.lost_since_s = np.full(n, np.nan)
+        self._lost_pending = False
         cfg = mission.cfg
         self._k = gains_vector(cfg.consensus)
         self._cos_tilt_max = math.cos(math.radians(cfg.phases.stable_tilt_deg))
@@ -176,10 +220,13 @@ class Agent:
 
         # Loss of control (a rotor gone): judged only once the launch recovery is over,
         # since a tumbling vehicle in STABILISE is the normal case there.
-        tilted = (phase >= _ASSEMBLE) & (phase != _FAILED) & valid & (cos_tilt < self._cos_lost)
-        self.lost_since_s[tilted & np.isnan(self.lost_since_s)] = t_s
-        self.lost_since_s[~tilted] = np.nan
-        phase[tilted & (t_s - self.lost_since_s >= ph.lost_dwell_s - 1e-9)] = _FAILED
+        over = cos_tilt < self._cos_lost
+        if self._lost_pending or over.any():  # (skipped while nobody is tilted that far)
+            tilted = (phase >= _ASSEMBLE) & (phase != _FAILED) & valid & over
+            self.lost_since_s[tilted & np.isnan(self.lost_since_s)] = t_s
+            self.lost_since_s[~tilted] = np.nan
+            phase[tilted & (t_s - self.lost_since_s >= ph.lost_dwell_s - 1e-9)] = _FAILED
+            self._lost_pending = bool(tilted.any())
 
     def _agree_t_go(self, t_s: float, view: SwarmView, age: np.ndarray) -> None:
         """The transit-start rule (docs/swarm.md): adopt the earliest t_go heard; with
@@ -218,22 +265,20 @@ class Agent:
         n_rows = len(rows)
         ids = self.ids[rows]
         p, v = own.pos_ned_m[rows], own.vel_ned_mps[rows]
-        vp, vv, vage = view.pos_ned_m[rows], view.vel_ned_mps[rows], age[rows]
-        vphase = view.phase[rows]
-        heard = vage < np.inf
-        known = ~np.isnan(np.einsum("rjk,rjk->rj", vp, vv))  # position and velocity both finite
-        trusted = (vage <= sw.stale_after_s) & ((view.flags[rows] & FLAG_OWN_VALID) != 0) & known
-        r_idx = np.arange(n_rows)
-        trusted[r_idx, ids] = False  # the own vehicle comes first hand
-        # Predict every fresh neighbour to now (the link delivers states tens of ms old).
-        pred = vp + vv * np.where(trusted, vage, 0.0)[..., None]
-        airborne = vphase >= _STABILISE
+        n_veh = view.n_vehicles
+        pred = np.empty((n_rows, n_veh, 3))
+        usable, repel, ghost = (np.empty((n_rows, n_veh), np.bool_) for _ in range(3))
+        kern.neighbour_sets_rows(rows, ids, p, view.pos_ned_m, view.vel_ned_mps, view.flags, view.phase, age,
+                                 sw.stale_after_s, IN_FORMATION, min(a.sensing_radius_m, a.vehicle_influence_m),
+                                 pred, usable, repel, ghost)
+        vv = view.vel_ned_mps[rows]
 
         # Rows holding different transit starts fly different references; usually one group.
         go = self.t_go_s[rows]
-        groups = [go[0]] if n_rows == 1 or np.all(go == go[0]) or np.all(np.isnan(go)) else \
-            list(np.unique(np.where(np.isnan(go), -np.inf, go)))
-        usable = trusted & IN_FORMATION[vphase]
+        gl = go.tolist()  # a handful of floats: Python beats numpy's per-call cost here
+        g0 = gl[0]
+        same = all(x == g0 for x in gl) if g0 == g0 else all(x != x for x in gl)
+        groups = [g0] if same else list(np.unique(np.where(np.isnan(go), -np.inf, go)))
         if len(groups) == 1:
             u1, h_pos_rows, h_vel_rows = self._consensus(t_s, groups[0], p, v, ids, pred, vv, usable)
         else:
@@ -244,15 +289,10 @@ class Agent:
                     t_s, math.nan if g == -np.inf else g, p[sel], v[sel], ids[sel], pred[sel], vv[sel], usable[sel])
 
         u2 = np.zeros((n_rows, 3))
-        cutoff = min(a.sensing_radius_m, a.vehicle_influence_m)
-        d = pred - p[:, None, :]
-        near = np.einsum("rjk,rjk->rj", d, d) < cutoff * cutoff  # cheap prefilter for the loop
-        kern.pair_repulsion_rows(p, pred, trusted & airborne & near, ids, a.vehicle_gain_mps2, a.vehicle_influence_m,
-                                 cutoff, a.kappa, u2)
-        ghost = heard & ~trusted & airborne & ~np.isnan(vp[..., 0])
-        ghost[r_idx, ids] = False
+        kern.pair_repulsion_rows(p, pred, repel, ids, a.vehicle_gain_mps2, a.vehicle_influence_m,
+                                 min(a.sensing_radius_m, a.vehicle_influence_m), a.kappa, u2)
         if ghost.any():
-            top, bottom = self._ghost_columns(vp, vv)
+            top, bottom = self._ghost_columns(view.pos_ned_m[rows], vv)
             kern.segment_repulsion_rows(p, top, bottom, np.full(ghost.shape, sw.ghost_radius_m), ghost,
                                         a.vehicle_gain_mps2, a.vehicle_influence_m, a.kappa, u2)
         if self._n_obstacles:

@@ -21,8 +21,12 @@ All functions are vectorised over leading axes and are pure numpy.
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pymap3d
+
+from companion.control.kernel import kernel
 
 
 def quat_wxyz_to_rot(q_wxyz: np.ndarray) -> np.ndarray:
@@ -87,6 +91,47 @@ def rot_to_quat_wxyz(rot: np.ndarray) -> np.ndarray:
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     q[q[:, 0] < 0] *= -1.0
     return q.reshape(shape + (4,))
+
+
+@kernel
+def rot_to_quat_rows(rot: np.ndarray, out: np.ndarray) -> None:
+    """rot_to_quat_wxyz row by row, into out: the loop twin that compiled hot loops call
+    (the simulator converts 40 attitudes per tick; numpy's per-call overhead dominates).
+    Same case choice (first largest of the four), same sign convention.
+
+    Args:
+        rot: (n, 3, 3) rotation matrices; out: (n, 4), written with [w, x, y, z].
+    """
+    for i in range(rot.shape[0]):
+        r00, r01, r02 = rot[i, 0, 0], rot[i, 0, 1], rot[i, 0, 2]
+        r10, r11, r12 = rot[i, 1, 0], rot[i, 1, 1], rot[i, 1, 2]
+        r20, r21, r22 = rot[i, 2, 0], rot[i, 2, 1], rot[i, 2, 2]
+        k, best = 0, 1.0 + r00 + r11 + r22
+        sq = 1.0 + r00 - r11 - r22
+        if sq > best:
+            k, best = 1, sq
+        sq = 1.0 - r00 + r11 - r22
+        if sq > best:
+            k, best = 2, sq
+        sq = 1.0 - r00 - r11 + r22
+        if sq > best:
+            k, best = 3, sq
+        s = 2.0 * math.sqrt(max(best, 0.0))
+        a, b, c = (r21 - r12) / s, (r02 - r20) / s, (r10 - r01) / s
+        d, e, f = (r01 + r10) / s, (r02 + r20) / s, (r12 + r21) / s
+        h = 0.25 * s
+        if k == 0:
+            w, x, y, z = h, a, b, c
+        elif k == 1:
+            w, x, y, z = a, h, d, e
+        elif k == 2:
+            w, x, y, z = b, d, h, f
+        else:
+            w, x, y, z = c, e, f, h
+        n = math.sqrt(w * w + x * x + y * y + z * z)
+        if w < 0.0:
+            n = -n
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3] = w / n, x / n, y / n, z / n
 
 
 def _nonneg(x: np.ndarray) -> np.ndarray:

@@ -12,9 +12,13 @@ the headless runner keeps one view per simulated vehicle, a companion keeps one.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+import math
+from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
+
+from companion.control.kernel import kernel
 
 FLAG_ASSEMBLED = 1
 """The vehicle has reached its formation slot at least once."""
@@ -69,6 +73,8 @@ class SwarmView:
         t_go_s: (n, N) that vehicle's transit start, s (NaN = none).
         received: (n,) int, states applied per receiver (for link statistics).
         ignored_old: (n,) int, states dropped because a newer one was already held.
+        receive_kernel: the loop `receive` runs (None: receive_rows, interpreted; the
+            simulator passes its compiled twin, sim_bridge.jit).
     """
 
     pos_ned_m: np.ndarray
@@ -79,14 +85,15 @@ class SwarmView:
     t_go_s: np.ndarray
     received: np.ndarray
     ignored_old: np.ndarray
+    receive_kernel: Callable | None = field(default=None, repr=False, compare=False)
 
     @classmethod
-    def unknown(cls, n_receivers: int, n_vehicles: int) -> "SwarmView":
+    def unknown(cls, n_receivers: int, n_vehicles: int, receive_kernel: Callable | None = None) -> "SwarmView":
         """A view in which nothing has been heard yet."""
         n, m = n_receivers, n_vehicles
         return cls(np.full((n, m, 3), np.nan), np.full((n, m, 3), np.nan), np.full((n, m), np.nan),
                    np.zeros((n, m), dtype=np.int8), np.zeros((n, m), dtype=np.uint8), np.full((n, m), np.nan),
-                   np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64))
+                   np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64), receive_kernel)
 
     @property
     def n_receivers(self) -> int:
@@ -106,36 +113,26 @@ class SwarmView:
         return (self.flags & FLAG_ASSEMBLED) != 0
 
     def receive(self, rows: np.ndarray, states: SwarmStates) -> int:
-        """Apply states[k] to receiver rows[k]; a state older than (or as old as)
-        the one held is ignored. Returns how many were applied.
+        """Apply states[k] to receiver rows[k], in order; a state older than (or as old as)
+        the one held is ignored, so the newest wins whatever the order. Returns how many
+        were applied.
 
         Args:
             rows: (k,) receiver index of each state.
             states: k states; vehicle_id outside [0, N) or a non-finite stamp is
                 ignored (a hostile or corrupt message must not index out of range).
         """
-        rows = np.asarray(rows, dtype=np.int64)
-        ids = np.asarray(states.vehicle_id, dtype=np.int64)
-        stamp = np.asarray(states.stamp_s, dtype=float)
-        valid = (ids >= 0) & (ids < self.n_vehicles) & (rows >= 0) & (rows < self.n_receivers) & np.isfinite(stamp)
-        ok = valid.copy()
-        ok[valid] = ~(stamp[valid] <= self.stamp_s[rows[valid], ids[valid]])  # a held NaN compares False
-        np.add.at(self.ignored_old, rows[valid & ~ok], 1)
-        k = np.flatnonzero(ok)
-        if len(k) == 0:
-            return 0
-        # Several states for one (receiver, vehicle) in one batch: the newest must land
-        # last, because fancy assignment keeps the last write.
-        k = k[np.argsort(stamp[k], kind="stable")]
-        r, v = rows[k], ids[k]
-        self.pos_ned_m[r, v] = states.pos_ned_m[k]
-        self.vel_ned_mps[r, v] = states.vel_ned_mps[k]
-        self.stamp_s[r, v] = stamp[k]
-        self.phase[r, v] = states.phase[k]
-        self.flags[r, v] = states.flags[k]
-        self.t_go_s[r, v] = states.t_go_s[k]
-        np.add.at(self.received, r, 1)
-        return len(k)
+        return self._apply(np.ascontiguousarray(rows, np.int64), np.arange(len(states)), states)
+
+    def _apply(self, rows: np.ndarray, src: np.ndarray, states: SwarmStates) -> int:
+        f8 = np.float64
+        return (self.receive_kernel or receive_rows)(
+            rows, src, np.ascontiguousarray(states.vehicle_id, np.int64),
+            np.ascontiguousarray(states.stamp_s, f8), np.ascontiguousarray(states.pos_ned_m, f8),
+            np.ascontiguousarray(states.vel_ned_mps, f8), np.ascontiguousarray(states.phase, np.int8),
+            np.ascontiguousarray(states.flags, np.uint8), np.ascontiguousarray(states.t_go_s, f8),
+            self.pos_ned_m, self.vel_ned_mps, self.stamp_s, self.phase, self.flags, self.t_go_s, self.received,
+            self.ignored_old)
 
     def receive_all(self, states: SwarmStates) -> None:
         """Every receiver gets every state (a lossless broadcast); same newest-wins rule.
@@ -143,23 +140,9 @@ class SwarmView:
         Each receiver's own vehicle is written too: the agent takes its own entry
         first hand and never reads it from the view.
         """
-        ids = np.asarray(states.vehicle_id, dtype=np.int64)
-        stamp = np.asarray(states.stamp_s, dtype=float)
-        ok = (ids >= 0) & (ids < self.n_vehicles) & np.isfinite(stamp)
-        ids, st = ids[ok], states.select(ok)
-        newer = ~(st.stamp_s[None, :] <= self.stamp_s[:, ids])  # (n, k)
-        if newer.all():
-            self.pos_ned_m[:, ids] = st.pos_ned_m
-            self.vel_ned_mps[:, ids] = st.vel_ned_mps
-            self.stamp_s[:, ids] = st.stamp_s
-            self.phase[:, ids] = st.phase
-            self.flags[:, ids] = st.flags
-            self.t_go_s[:, ids] = st.t_go_s
-            self.received += len(ids)
-            return
-        r, c = np.nonzero(newer)
-        self.receive(r, st.select(c))
-        self.ignored_old += np.sum(~newer, axis=1)
+        k, n = len(states), self.n_receivers
+        if k:
+            self._apply(np.repeat(np.arange(n), k), np.tile(np.arange(k), n), states)
 
     def receive_one(self, row: int, vehicle_id: int, stamp_s: float, pos_ned_m, vel_ned_mps, phase: int,
                     flags: int, t_go_s: float) -> bool:
@@ -179,6 +162,38 @@ class SwarmView:
         self.t_go_s[row, vehicle_id] = t_go_s
         self.received[row] += 1
         return True
+
+
+@kernel
+def receive_rows(rows, src, ids, stamp, pos, vel, phase, flags, t_go, v_pos, v_vel, v_stamp, v_phase, v_flags,
+                 v_t_go, received, ignored_old):
+    """The loop of SwarmView.receive: state src[k] (ids[src[k]], stamp[src[k]], ...) to
+    receiver rows[k].
+
+    Out-of-range ids or rows and non-finite stamps are skipped; a stamp not newer than
+    the one held counts in ignored_old. Returns the number applied.
+    """
+    n_r, n_v = v_stamp.shape
+    applied = 0
+    for m in range(rows.shape[0]):
+        k = src[m]
+        r, v, s = rows[m], ids[k], stamp[k]
+        if r < 0 or r >= n_r or v < 0 or v >= n_v or not math.isfinite(s):
+            continue
+        held = v_stamp[r, v]
+        if held == held and s <= held:
+            ignored_old[r] += 1
+            continue
+        for a in range(3):
+            v_pos[r, v, a] = pos[k, a]
+            v_vel[r, v, a] = vel[k, a]
+        v_stamp[r, v] = s
+        v_phase[r, v] = phase[k]
+        v_flags[r, v] = flags[k]
+        v_t_go[r, v] = t_go[k]
+        received[r] += 1
+        applied += 1
+    return applied
 
 
 def swarm_due(t_us: int, rate_hz: float, vehicle_id, period_us: int):

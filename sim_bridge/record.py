@@ -78,14 +78,11 @@ class SafetyTracker:
                     if d[k] < self.collision_m:
                         self.colliding_pairs.add(pair)
         if len(ids) and len(mission.obstacle_radii_m):
-            gap = (
-                np.linalg.norm(pos[:, None, :] - mission.obstacle_centres_ned_m[None], axis=2)
-                - mission.obstacle_radii_m[None]
-            )
-            k = np.unravel_index(np.argmin(gap), gap.shape)
-            if gap[k] < self.min_clearance_m:
-                self.min_clearance_m, self.min_clearance_time_s = float(gap[k]), t_s
-                self.min_clearance_vehicle = int(ids[k[0]])
+            gap, k = _closest_obstacle(np.ascontiguousarray(pos, float), mission.obstacle_centres_ned_m,
+                                       mission.obstacle_radii_m)
+            if gap < self.min_clearance_m:
+                self.min_clearance_m, self.min_clearance_time_s = gap, t_s
+                self.min_clearance_vehicle = int(ids[k])
 
     def to_json(self) -> dict:
         return {"separation_m": self.separation_m, "min_pair_dist_m": self.min_pair_dist_m,
@@ -120,9 +117,23 @@ def _closest_pair(pos: np.ndarray, threshold_m: float) -> tuple[float, int, int,
     return best, bi, bj, close
 
 
+@njit(cache=True)
+def _closest_obstacle(pos: np.ndarray, centres: np.ndarray, radii: np.ndarray) -> tuple[float, int]:
+    """Smallest gap between (k, 3) points and spheres (m, 3), (m,), and whose it is."""
+    best, bi = np.inf, 0
+    for i in range(pos.shape[0]):
+        for j in range(centres.shape[0]):
+            d = np.sqrt((pos[i, 0] - centres[j, 0]) ** 2 + (pos[i, 1] - centres[j, 1]) ** 2
+                        + (pos[i, 2] - centres[j, 2]) ** 2) - radii[j]
+            if d < best:
+                best, bi = d, i
+    return best, bi
+
+
 def warm_up() -> None:
     """Compile (or load from cache) the tracker's kernel before a real-time run needs it."""
     _closest_pair(np.zeros((2, 3)), 1.0)
+    _closest_obstacle(np.zeros((1, 3)), np.zeros((1, 3)), np.ones(1))
 
 
 def _pair_from_condensed(k: int, n: int) -> tuple[int, int]:

@@ -13,6 +13,7 @@ run and a SITL run with one seed lose the same messages.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from pydantic import Field
 from pydantic.dataclasses import dataclass
 
@@ -56,6 +57,44 @@ def hashed_uniform(seed: int, sender: np.ndarray, stamp_us: np.ndarray, receiver
     return (x >> np.uint64(11)).astype(np.float64) * 2.0 ** -53
 
 
+@njit(cache=True)
+def _splitmix_nb(x):
+    x = x + np.uint64(0x9E3779B97F4A7C15)
+    x = (x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    x = (x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return x ^ (x >> np.uint64(31))
+
+
+@njit(cache=True)
+def _fates(seed_lo, stream_keys, sender, stamp_us, n, loss, delay_s, jitter_s, send_s, dist_ok):
+    """The loop of RadioModel.deliveries (compiled: it runs for every published state):
+    hashed_uniform's draws, bit for bit, for every (message, receiver) pair."""
+    k = sender.shape[0]
+    msg = np.empty(k * n, np.int64)
+    rcv = np.empty(k * n, np.int64)
+    when = np.empty(k * n)
+    m = 0
+    b_loss = _splitmix_nb(seed_lo ^ stream_keys[0])
+    b_jit = _splitmix_nb(seed_lo ^ stream_keys[1])
+    for i in range(k):
+        st = np.uint64(stamp_us[i])
+        xs_l = _splitmix_nb(_splitmix_nb(b_loss ^ np.uint64(sender[i])) ^ st)
+        xs_j = _splitmix_nb(_splitmix_nb(b_jit ^ np.uint64(sender[i])) ^ st)
+        for r in range(n):
+            if r == sender[i] or not dist_ok[i, r]:
+                continue
+            if loss > 0.0:
+                u = np.float64(_splitmix_nb(xs_l ^ np.uint64(r)) >> np.uint64(11)) * 2.0 ** -53
+                if u < loss:
+                    continue
+            w = send_s + delay_s
+            if jitter_s > 0.0:
+                w += jitter_s * (np.float64(_splitmix_nb(xs_j ^ np.uint64(r)) >> np.uint64(11)) * 2.0 ** -53)
+            msg[m], rcv[m], when[m] = i, r, w
+            m += 1
+    return msg[:m], rcv[:m], when[:m]
+
+
 class RadioModel:
     """Fate of each copy of a published state: lost, or delivered at a time.
 
@@ -67,6 +106,10 @@ class RadioModel:
     def __init__(self, cfg: LinkConfig, seed: int):
         self.cfg = cfg
         self.seed = int(seed)
+        # hashed_uniform's key material for streams 1 (loss) and 2 (jitter), precomputed
+        self._seed_lo = np.uint64(self.seed & 0xFFFFFFFFFFFFFFFF)
+        self._stream_keys = np.array([s * 0x632BE59BD9B4E019 & 0xFFFFFFFFFFFFFFFF for s in (1, 2)], np.uint64)
+        self._all_ok = np.ones((0, 0), np.bool_)
 
     def deliveries(self, sender: np.ndarray, stamp_s: np.ndarray, send_s: float, sender_pos: np.ndarray,
                    receiver_pos: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -83,18 +126,20 @@ class RadioModel:
         k, n = len(sender), len(receiver_pos)
         c = self.cfg
         lossy = c.kind == "lossy"
-        msg, rcv = np.meshgrid(np.arange(k), np.arange(n), indexing="ij")
-        keep = rcv != np.asarray(sender)[:, None]
+        sender = np.asarray(sender, np.int64)
         if c.range_m is not None:
             d = np.linalg.norm(np.asarray(sender_pos)[:, None, :] - np.asarray(receiver_pos)[None], axis=2)
-            keep &= d <= c.range_m
-        stamp_us = np.round(np.asarray(stamp_s, float) * 1e6)[:, None]
-        if lossy and c.loss > 0:
-            keep &= hashed_uniform(self.seed, np.asarray(sender)[:, None], stamp_us, rcv, 1) >= c.loss
-        when = np.full((k, n), send_s + (c.delay_s if lossy else 0.0))
-        if lossy and c.jitter_s > 0:
-            when += c.jitter_s * hashed_uniform(self.seed, np.asarray(sender)[:, None], stamp_us, rcv, 2)
-        return msg[keep], rcv[keep], when[keep]
+            dist_ok = d <= c.range_m
+        else:
+            dist_ok = self._everyone(k, n)
+        stamp_us = np.round(np.asarray(stamp_s, float) * 1e6).astype(np.int64)
+        return _fates(self._seed_lo, self._stream_keys, sender, stamp_us, n, c.loss if lossy else 0.0,
+                      c.delay_s if lossy else 0.0, c.jitter_s if lossy else 0.0, float(send_s), dist_ok)
+
+    def _everyone(self, k: int, n: int) -> np.ndarray:
+        if self._all_ok.shape != (k, n):
+            self._all_ok = np.ones((k, n), np.bool_)
+        return self._all_ok
 
 
 class AgeHistogram:
@@ -167,40 +212,46 @@ class PerfectTransport(NeighbourTransport):
 
 
 class LossyTransport(NeighbourTransport):
-    """Copies are lost, delayed and jittered as RadioModel decides (seeded)."""
+    """Copies are lost, delayed and jittered as RadioModel decides (seeded).
+
+    Copies wait in chunks, one per publish call, each with its earliest and latest
+    delivery time: with a fixed delay a chunk is delivered whole, without selecting
+    rows (the common case costs one view.receive per chunk, not a copy per field).
+    """
 
     def __init__(self, n: int, cfg: LinkConfig, seed: int):
         super().__init__(n)
         self.radio = RadioModel(cfg, seed)
-        self._when = np.zeros(0)
-        self._rows = np.zeros(0, dtype=np.int64)
-        self._states: SwarmStates | None = None
+        self._chunks: list[tuple[float, float, np.ndarray, np.ndarray, SwarmStates]] = []
+        """(earliest, latest delivery time, delivery times, receiver rows, states) per publish call."""
 
     def publish(self, t_s, states, positions_ned_m) -> None:
         if not len(states):
             return
         pos = np.asarray(positions_ned_m, float)
-        msg, rcv, when = self.radio.deliveries(np.asarray(states.vehicle_id), np.asarray(states.stamp_s), t_s,
-                                               pos[np.asarray(states.vehicle_id)], pos)
+        ids = np.asarray(states.vehicle_id)
+        msg, rcv, when = self.radio.deliveries(ids, np.asarray(states.stamp_s), t_s, pos[ids], pos)
         self.sent += len(states) * (self.n - 1)
-        copies = states.select(msg)
-        self._when = np.concatenate([self._when, when])
-        self._rows = np.concatenate([self._rows, rcv])
-        self._states = copies if self._states is None else SwarmStates(
-            *(np.concatenate([getattr(self._states, f), getattr(copies, f)]) for f in SwarmStates.__dataclass_fields__))
+        if len(msg):
+            self._chunks.append((float(when.min()), float(when.max()), when, rcv, states.select(msg)))
 
     def deliver(self, t_s, view) -> None:
-        if self._states is None or not len(self._when):
-            return
-        due = self._when <= t_s + 1e-9
-        if not due.any():
-            return
-        st = self._states.select(due)
-        view.receive(self._rows[due], st)
-        self.delivered += int(due.sum())
-        self._ages.add(t_s - np.asarray(st.stamp_s))
-        keep = ~due
-        self._when, self._rows, self._states = self._when[keep], self._rows[keep], self._states.select(keep)
+        t = t_s + 1e-9
+        kept = []
+        for chunk in self._chunks:
+            first, last, when, rows, st = chunk
+            if first > t:
+                kept.append(chunk)
+                continue
+            if last > t:  # partly due (jitter): split it
+                due = when <= t
+                keep = ~due
+                kept.append((float(when[keep].min()), last, when[keep], rows[keep], st.select(keep)))
+                rows, st = rows[due], st.select(due)
+            view.receive(rows, st)
+            self.delivered += len(rows)
+            self._ages.add(t_s - np.asarray(st.stamp_s))
+        self._chunks = kept
 
 
 def make_transport(cfg: LinkConfig, n: int, seed: int) -> NeighbourTransport:

@@ -88,3 +88,18 @@ def test_integrate_quat_body_rates_closed_form():
     expected = frames.quat_wxyz_to_rot(q0)[0] @ frames.euler_zyx_to_rot(0.0, 0.0, 0.5)
     np.testing.assert_allclose(frames.quat_wxyz_to_rot(q)[0], expected, atol=1e-12)
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)
+
+
+def test_rot_to_quat_rows_loop_twin_equals_the_vectorised_conversion():
+    from scipy.spatial.transform import Rotation
+
+    from companion.frames import rot_to_quat_rows, rot_to_quat_wxyz
+    from sim_bridge.jit import compiled
+
+    rot = Rotation.random(500, random_state=3).as_matrix()
+    rot[:4] = [np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1])]  # 0 and 180 deg
+    ref = rot_to_quat_wxyz(rot)
+    for fn in (rot_to_quat_rows, compiled(rot_to_quat_rows)):
+        out = np.empty((500, 4))
+        fn(rot, out)
+        np.testing.assert_allclose(out, ref, rtol=0, atol=1e-15)
