@@ -19,7 +19,6 @@ import dataclasses
 import math
 import os
 import signal
-import threading
 import time
 from typing import Callable
 
@@ -30,7 +29,7 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
 from companion.control.geometric import max_thrust_n  # noqa: E402
 from companion.frames import geodetic_to_ned, integrate_quat_body_rates  # noqa: E402
-from companion.link.dialects import Mode, dialect_named  # noqa: E402
+from companion.link.dialects import dialect_named  # noqa: E402
 from companion.link.endpoints import MavEndpoint, UdpLink  # noqa: E402
 from companion.link.msgdef import swarmdrop  # noqa: E402
 from companion.link.signing import Signing, SigningCounters, SigningError, TimestampStore, load_key  # noqa: E402
@@ -48,11 +47,11 @@ from sim_bridge.record import MissionTracker, RunResult  # noqa: E402
 from sim_bridge.record import warm_up as warm_up_tracker  # noqa: E402
 from sim_bridge.results import LinkStats  # noqa: E402
 from sim_bridge.sitl.autopilot import Autopilot  # noqa: E402
+from sim_bridge.sitl.clock import SitlClock  # noqa: E402
 from sim_bridge.sitl.config import SitlConfig  # noqa: E402
 from sim_bridge.sitl.handler import MessageRouter  # noqa: E402
 from sim_bridge.sitl.medium import Medium  # noqa: E402
 from sim_bridge.sitl.params_table import ParamTable, default_specs  # noqa: E402
-from sim_bridge.sitl.status import SitlStatus  # noqa: E402
 from sim_bridge.sitl.telemetry import (  # noqa: E402
     GLOBAL_POSITION_INT,
     GPS_GLOBAL_ORIGIN,
@@ -66,14 +65,11 @@ from sim_bridge.sitl.telemetry import (  # noqa: E402
     quantised_origin,
 )
 
-HEARTBEAT_POLL_S = 0.02
 RADIO_FLUSH_TICKS = 5
 """Vehicles without a control stream still get their radio copies this often (ticks)."""
 SILENT_AGENT_S = 3.0
 """A vehicle whose agent has published nothing for this long (simulated) no longer counts
 for the recorder's assembly and completion (a crashed companion must not stall the run)."""
-STATUS_PERIOD_S = 0.25
-"""A fleet harness acts on these (progress, fault injection at a simulated time)."""
 
 
 def spawn_positions_ned_m(cfg: SitlConfig) -> np.ndarray:
@@ -93,7 +89,7 @@ def hover_thrust_fraction(cfg: SitlConfig) -> float:
     return cfg.vehicle.mass_kg * GRAVITY_MPS2 / max_thrust_n(cfg.vehicle)
 
 
-class SitlServer:
+class SitlServer(SitlClock):
     """All vehicles of one SITL. Implements the handler's SitlContext.
 
     Args:
@@ -453,36 +449,6 @@ class SitlServer:
     def _unix_us(self, sim_s: float) -> int:
         return int(round((self.telemetry.epoch_unix_s + sim_s) * 1e6))
 
-    def lockstep_waiting(self) -> bool:
-        """True while a companion that drives the clock has not answered the current tick.
-
-        Lockstep companions (they send SWARMDROP_TICK) answer every LOCAL_POSITION_NED
-        they get; their swarm state for the tick must also have reached the radio when
-        one is due. Other clients in Offboard drive the clock with their setpoints.
-        """
-        t_us = int(round(self.sim_s * 1e6))
-        unix_us = self._unix_us(self.sim_s)
-        wall = self.wall_clock()
-        detach = self.cfg.time.lockstep_detach_s
-        md = self.medium
-        for k, ap in enumerate(self.autopilots):
-            if self._companion_us[k] >= 0:
-                if wall - self._companion_wall[k] > detach:
-                    continue  # silent companion (crashed?): it no longer holds the clock
-                if self._control_us[k] == t_us and self._companion_us[k] < unix_us:
-                    return True
-                if md is not None and md.latest_stamp_us[k] < unix_us and self._publish_ticks()[k]:
-                    return True
-            elif ap.px4 and ap.mode == Mode.OFFBOARD and not self._sp_fresh[k]:
-                return True  # a plain client (MAVSDK) in Offboard drives the clock with its setpoints
-        return False
-
-    def any_clock_driver(self) -> bool:
-        wall = self.wall_clock()
-        if ((self._companion_us >= 0) & (wall - self._companion_wall <= self.cfg.time.lockstep_detach_s)).any():
-            return True
-        return any(ap.px4 and ap.mode == Mode.OFFBOARD for ap in self.autopilots)
-
     # ---- asyncio process -------------------------------------------------------------
     async def start(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -600,104 +566,6 @@ class SitlServer:
         if self.gcs is not None and self.gcs.pending:
             self.gcs.flush()
 
-    async def _heartbeat_task(self) -> None:
-        """Heartbeats and paced parameter listings, on the wall clock (they flow while a
-        lockstep clock waits, as MAVSDK's timeouts are wall-clock)."""
-        last = self.wall_clock()
-        while not self._stop.is_set():
-            now = self.wall_clock()
-            ks, _ = self.heartbeats.due(now)
-            for k in ks.tolist():
-                self.broadcast(k, self.telemetry.heartbeat(k))
-            listed = self.router.pump_params(now - last)
-            last = now
-            if len(ks):
-                self._flush_all()
-            else:
-                for ep in listed:
-                    ep.flush()
-            try:
-                await asyncio.wait_for(self._stop.wait(), HEARTBEAT_POLL_S)
-            except asyncio.TimeoutError:
-                pass
-
-    def _clock_held(self) -> bool:
-        need = self.cfg.time.start_when_attached
-        if self.ticks != 0 or need <= 0:
-            return False
-        if self.cfg.time.lockstep and not (self._fix_t > 0).any():
-            # A lockstep companion holds the clock only once it has declared itself (its first
-            # SWARMDROP_TICK); starting before all have would let the first ticks pass some of
-            # them by, and the run would depend on the wall clock. (With delayed GPS fixes the
-            # companions' set-up needs simulated time, so there the clock starts on attach.)
-            return int((self._companion_us >= 0).sum()) < need
-        return int(self.attached.sum()) < need
-
-    async def _sim_task(self) -> None:
-        """Take ticks; the decision to step and the step itself have no await between them."""
-        tc = self.cfg.time
-        wall0, sim0 = self.wall_clock(), self.sim_s
-        while not self._stop.is_set():
-            if self._clock_held():
-                await asyncio.sleep(0.02)
-                wall0, sim0 = self.wall_clock(), self.sim_s
-                continue
-            if self.wall_started is None:
-                self.wall_started, self.sim_started_s = self.wall_clock(), self.sim_s
-            if tc.lockstep and self.any_clock_driver():
-                if self.lockstep_waiting():
-                    self._sp_event.clear()
-                    try:
-                        await asyncio.wait_for(self._sp_event.wait(), 0.05)
-                    except asyncio.TimeoutError:
-                        pass
-                    continue
-                wall0, sim0 = self.wall_clock(), self.sim_s + self.tick_s
-            else:
-                delay = wall0 + (self.sim_s + self.tick_s - sim0) / tc.speed - self.wall_clock()
-                if delay > 0:
-                    await asyncio.sleep(delay)
-                    continue  # re-evaluate: commands may have arrived meanwhile
-                if delay < -0.5:  # overloaded: drop the debt instead of bursting
-                    wall0, sim0 = self.wall_clock(), self.sim_s
-            self.step_once()
-            self.emit_streams()
-            if self.medium is not None:
-                self._radio_tick(tc.lockstep)
-            self._flush_all()
-            self._sp_fresh[:] = False
-            # Stop decided on simulation time, in this loop: a lockstep run ends on the same tick.
-            if self._stop_when_done and self.mission_done:
-                print("MISSION COMPLETE", flush=True)
-                self._stop.set()
-                break
-            if self._stop_at_s is not None and self.sim_s >= self._stop_at_s - 1e-9:
-                print("DURATION REACHED", flush=True)
-                self._stop.set()
-                break
-            await asyncio.sleep(0)  # let the sockets be read
-
-    def status(self) -> SitlStatus:
-        """One line of progress for a fleet harness."""
-        md = self.medium
-        wall = 0.0 if self.wall_started is None else self.wall_clock() - self.wall_started
-        return SitlStatus(
-            sim_s=round(self.sim_s, 3), wall_s=round(wall, 3),
-            rtf=round((self.sim_s - self.sim_started_s) / wall, 3) if wall > 0 else None,
-            attached=int(self.attached.sum()), armed=int(sum(ap.armed for ap in self.autopilots)),
-            complete=self.mission_done,
-            phases=tuple(np.bincount(md.phase, minlength=6).tolist()) if md is not None else (),
-            link_bytes_per_s_per_vehicle=round(float(md.bytes_in.sum()) / max(self.sim_s, 1e-9) / self.n, 1)
-            if md is not None else None)
-
-    async def _status_task(self, out) -> None:
-        while not self._stop.is_set():
-            try:
-                await asyncio.wait_for(self._stop.wait(), STATUS_PERIOD_S)
-            except asyncio.TimeoutError:
-                pass
-            print(self.status().to_line(), file=out, flush=True)
-
     async def run(self, on_ready: Callable[["SitlServer"], None] | None = None,
                   handle_signals: bool = False, status_out=None, stop_when_done: bool = False,
                   stop_at_s: float | None = None) -> None:
@@ -724,36 +592,4 @@ class SitlServer:
                 self.tlog.close()
 
 
-class BackgroundSitl:
-    """Run a SitlServer on its own thread and event loop (tests, embedding)."""
-
-    def __init__(self, cfg: SitlConfig, **kwargs):
-        self.server = SitlServer(cfg, **kwargs)
-        self._ready = threading.Event()
-        self._error: BaseException | None = None
-        self._thread = threading.Thread(target=self._main, name="sitl", daemon=True)
-
-    def _main(self) -> None:
-        try:
-            asyncio.run(self.server.run(on_ready=lambda s: self._ready.set()))
-        except BaseException as exc:  # surfaced by start()/stop()
-            self._error = exc
-            self._ready.set()
-
-    def start(self, timeout_s: float = 30.0) -> SitlServer:
-        self._thread.start()
-        if not self._ready.wait(timeout_s) or self._error is not None:
-            raise RuntimeError(f"SITL did not start: {self._error!r}")
-        return self.server
-
-    def stop(self, timeout_s: float = 10.0) -> None:
-        self.server.request_stop()
-        self._thread.join(timeout_s)
-        if self._thread.is_alive():
-            raise RuntimeError("SITL thread did not stop")
-
-    def __enter__(self) -> SitlServer:
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
+from sim_bridge.sitl.background import BackgroundSitl  # noqa: E402,F401  (its home before the split)
