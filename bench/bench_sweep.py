@@ -22,9 +22,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def run(seeds: int = 100, workers: int | None = None, config: str = "configs/paper_40.yaml") -> dict:
     import numpy as np
 
-    from sim_bridge.sweep import run_sweep
-
-    from sim_bridge.sweep import run_one
+    from sim_bridge.sweep import run_one, run_sweep
 
     workers = workers or os.cpu_count() or 1
     run_one(str(ROOT / config), 0)  # compile / load caches

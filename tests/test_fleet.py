@@ -339,6 +339,20 @@ def test_lossy_link_converges_without_collision(cfg_dir, tmp_path):
 
 
 @pytest.mark.timeout(200)
+def test_a_rotor_failure_in_the_sitl_brings_one_down_and_the_others_finish(cfg_dir, tmp_path):
+    """The scenario's `faults` reach the SITL; the failed vehicle's agent declares it over
+    MAVLink attitude, and the other three finish without it (docs/scenario.md)."""
+    cfg = write_config(cfg_dir, "fleet4_rotor", faults={"rotor_failures": [{"vehicle": 2, "time_s": 16.0, "rotor": 3}]})
+    run = fly(tmp_path / "run", cfg, "--check")
+    assert run.proc.returncode == 0, run.proc.stdout
+    (f,) = run.metrics["rotor_failures"]
+    assert f["vehicle"] == 2 and f["failed_at_s"] == pytest.approx(16.0, abs=0.021)
+    assert 0.3 <= f["detection_latency_s"] <= 1.5 and f["final_height_m"] == pytest.approx(0.0, abs=0.05)
+    assert run.metrics["mission"]["completed"] and run.metrics["separation"]["collisions"] == 0
+    assert run.metrics["checks"]["rotor_failures_detected"]
+
+
+@pytest.mark.timeout(200)
 def test_lockstep_runs_are_bit_identical(px4_run, tmp_path):
     again = fly(tmp_path / "run", Path(px4_run.proc.args[4]), "--check")  # the same config file
     assert again.proc.returncode == 0, again.proc.stdout

@@ -59,6 +59,22 @@ def test_summary_counts_separation_violations():
     assert "| 2 | failed: min_separation_ok |" in markdown(runs, s, "t")
 
 
+def test_the_target_counts_healthy_completion_without_collision_and_failures_are_summarised():
+    runs = [SweepRun(1, True, 1.0, mission_completed=True, collisions=0, rotor_failures=1, failures_detected=1,
+                     max_detection_latency_s=0.8, min_failed_distance_m=5.0),
+            SweepRun(2, True, 1.0, mission_completed=True, collisions=1, rotor_failures=1, failures_detected=1,
+                     max_detection_latency_s=0.9, min_failed_distance_m=3.0),
+            SweepRun(3, True, 1.0, mission_completed=False, collisions=0, rotor_failures=1, failures_detected=0),
+            SweepRun(4, False, 1.0, reason="boom")]
+    assert [r.target_met for r in runs] == [True, False, False, False]
+    s = summary(runs, 1.0)
+    assert s["target_met"] == 1 and s["healthy_collisions"] == 1
+    assert s["rotor_failures"] == 3 and s["rotor_failures_detected"] == 2
+    assert s["detection_latency_s"]["max"] == 0.9 and s["min_failed_distance_m"] == 3.0
+    md = markdown(runs, s, "t")
+    assert "no collision | 1 (25.0 %)" in md and "rotor failures / declared by the vehicle's agent | 3 / 2" in md
+
+
 def test_one_worker_needs_no_dask_and_a_bad_config_fails_once(tmp_path):
     code = ("import sys; from sim_bridge.sweep import run_sweep;"
             f"run_sweep({SMALL!r}, [5], workers=1, progress=False);"
