@@ -26,6 +26,9 @@ FLAG_OWN_VALID = 2
 """The vehicle's own state estimate was finite and fresh when published."""
 FLAG_READY = 4
 """Its autopilot reports it recovered from launch (throw or take-off done)."""
+PHASE_COUNT = 7
+"""Phases are 0 .. PHASE_COUNT - 1 (companion.agent.Phase; a test keeps them equal). A state
+with any other phase is hostile or corrupt and is dropped: the agent indexes by phase."""
 
 
 @dataclass
@@ -148,7 +151,8 @@ class SwarmView:
                     flags: int, t_go_s: float) -> bool:
         """One state for one receiver (the onboard path: no arrays built). Same rules
         as receive. Returns True if it was applied."""
-        if not (0 <= vehicle_id < self.n_vehicles and stamp_s == stamp_s and abs(stamp_s) != np.inf):
+        if not (0 <= vehicle_id < self.n_vehicles and stamp_s == stamp_s and abs(stamp_s) != np.inf
+                and 0 <= phase < PHASE_COUNT):
             return False
         held = self.stamp_s[row, vehicle_id]
         if held == held and stamp_s <= held:
@@ -170,7 +174,7 @@ def receive_rows(rows, src, ids, stamp, pos, vel, phase, flags, t_go, v_pos, v_v
     """The loop of SwarmView.receive: state src[k] (ids[src[k]], stamp[src[k]], ...) to
     receiver rows[k].
 
-    Out-of-range ids or rows and non-finite stamps are skipped; a stamp not newer than
+    Out-of-range ids, rows or phases and non-finite stamps are skipped; a stamp not newer than
     the one held counts in ignored_old. Returns the number applied.
     """
     n_r, n_v = v_stamp.shape
@@ -178,7 +182,8 @@ def receive_rows(rows, src, ids, stamp, pos, vel, phase, flags, t_go, v_pos, v_v
     for m in range(rows.shape[0]):
         k = src[m]
         r, v, s = rows[m], ids[k], stamp[k]
-        if r < 0 or r >= n_r or v < 0 or v >= n_v or not math.isfinite(s):
+        if r < 0 or r >= n_r or v < 0 or v >= n_v or not math.isfinite(s) or phase[k] < 0 \
+                or phase[k] >= PHASE_COUNT:
             continue
         held = v_stamp[r, v]
         if held == held and s <= held:

@@ -375,7 +375,7 @@ class Fleet:
                 if bar is not None:
                     bar.n = min(int(sim_s), bar.total)
                     ph = st.phases
-                    names = ("launch", "stab", "asm", "transit", "hover", "land")
+                    names = ("launch", "stab", "asm", "transit", "hover", "land", "failed")
                     bar.set_postfix_str(" ".join(f"{n}:{c}" for n, c in zip(names, ph) if c)
                                         + f" rtf:{st.rtf} attached:{st.attached}/{self.n}"
                                         + (f" dead:{len(self.dead)}" if self.dead else ""), refresh=False)

@@ -268,3 +268,22 @@ def test_view_keeps_the_newest_state_whatever_the_arrival_order():
     assert not view.receive_one(0, -1, 1.0, [0, 0, 0], [0, 0, 0], 2, 0, np.nan)
     assert not view.receive_one(0, 1, np.nan, [0, 0, 0], [0, 0, 0], 2, 0, np.nan)
     assert view.age_s(6.0)[1, 2] == 1.0 and view.age_s(6.0)[0, 0] == np.inf
+
+
+def test_a_state_with_an_unknown_phase_is_dropped_and_never_breaks_the_agent():
+    """The phase indexes lookups in the agent: 7..255 from a hostile radio must not land."""
+    from companion.swarm import PHASE_COUNT
+
+    assert PHASE_COUNT == len(Phase)
+    m = _mission(3)
+    view = SwarmView.unknown(1, 3)
+    for k, ph in enumerate((7, 100, 200, 255)):
+        assert not view.receive_one(0, 1, 1.0 + k, [0, 0, -10], [0, 0, 0], ph, FLAG_OWN_VALID, math.nan)
+    st = _states([1, 2], 2.0, [[0, 0, -10], [1, 0, -10]], [[0, 0, 0], [0, 0, 0]])
+    st.phase[:] = [Phase.FAILED, 0]
+    st.phase = st.phase.astype(np.int16)
+    st.phase[1] = 300  # beyond int8 as well
+    assert view.receive([0, 0], st) == 1  # only the FAILED one (a valid phase)
+    assert view.phase[0].tolist() == [0, int(Phase.FAILED), 0] and np.isnan(view.stamp_s[0, 2])
+    out = Agent(m, np.array([0])).step(3.0, _own([0, 0, -10], [0, 0, 0], 3.0), view)
+    assert out.phase[0] == Phase.STABILISE

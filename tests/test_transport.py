@@ -72,3 +72,27 @@ def test_lossy_transport_delivers_after_the_delay_and_splits_jittered_chunks():
         assert (len(set(seen)) > 2) == (jitter > 0)  # jitter: copies trickle in
         assert tr.delivered == 2 * (n - 1) and tr.sent == 2 * (n - 1)
         assert np.isnan(view.stamp_s[0, 0]) and np.isnan(view.stamp_s[1, 1])
+
+
+def test_sitl_radio_drops_a_state_with_an_unknown_phase():
+    """A hostile SWARMDROP_STATE (phase 200) must neither raise nor land in the recorder."""
+    import socket
+    import time
+
+    from companion.link.msgdef import swarmdrop as sd
+    from sim_bridge.sitl.medium import Medium
+
+    md = Medium(3, LinkConfig(), seed=1, epoch_unix_s=0.0, bind=("127.0.0.1", 0))
+    tx = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        for stamp_us, phase in ((1_000_000, 200), (2_000_000, 3)):
+            msg = sd.MAVLink_swarmdrop_state_message(stamp_us, 0, 0, 0, -10, 0, 0, 0, [1, 0, 0, 0], phase, 2, 1)
+            tx.sendto(msg.pack(sd.MAVLink(None, srcSystem=2, srcComponent=191)), ("127.0.0.1", md.port))
+        deadline = time.monotonic() + 5.0
+        while md.bad_frames + int(md.states_in.sum()) < 2 and time.monotonic() < deadline:
+            md.receive()  # non-blocking: polled with a deadline until both datagrams are in
+        assert md.bad_frames == 1 and md.states_in.tolist() == [0, 1, 0]
+        assert md.phase.tolist() == [0, 3, 0] and md.latest_stamp_us[1] == 2_000_000
+    finally:
+        tx.close()
+        md.close()

@@ -15,7 +15,7 @@ import math
 
 from companion.link.endpoints import MavEndpoint
 from companion.link.msgdef import swarmdrop as md
-from companion.swarm import SwarmStates, SwarmView
+from companion.swarm import PHASE_COUNT, SwarmStates, SwarmView
 
 log = logging.getLogger("swarmdrop.swarm")
 
@@ -60,7 +60,7 @@ class SwarmLink:
             if msgid == _STATE:
                 # wire order: time_usec, t_go_usec, x, y, z, vx, vy, vz, q[4], phase, flags, vehicle_id
                 j = w[14]
-                if j == own or j >= n or sysid != j + 1 or epoch is None:
+                if j == own or j >= n or sysid != j + 1 or epoch is None or w[12] >= PHASE_COUNT:
                     self.rejected += 1
                     continue
                 self.states_in += 1

@@ -11,6 +11,7 @@ import asyncio
 import numpy as np
 
 from companion.link.dialects import Mode
+from companion.swarm import PHASE_COUNT
 from sim_bridge.sitl.status import SitlStatus
 
 HEARTBEAT_POLL_S = 0.02
@@ -137,7 +138,7 @@ class SitlClock:
             rtf=round((self.sim_s - self.sim_started_s) / wall, 3) if wall > 0 else None,
             attached=int(self.attached.sum()), armed=int(sum(ap.armed for ap in self.autopilots)),
             complete=self.mission_done,
-            phases=tuple(np.bincount(md.phase, minlength=6).tolist()) if md is not None else (),
+            phases=tuple(np.bincount(md.phase, minlength=PHASE_COUNT).tolist()) if md is not None else (),
             link_bytes_per_s_per_vehicle=round(float(md.bytes_in.sum()) / max(self.sim_s, 1e-9) / self.n, 1)
             if md is not None else None)
 

@@ -23,6 +23,7 @@ import numpy as np
 from companion.link.endpoints import UdpLink
 from companion.link.msgdef import swarmdrop as sd
 from companion.link.wire import Codec, FrameError
+from companion.swarm import PHASE_COUNT
 from sim_bridge.results import LinkStats, MeanMax
 from sim_bridge.transport import AgeHistogram, LinkConfig, RadioModel
 
@@ -96,6 +97,9 @@ class Medium:
             if msg.get_msgId() != _STATE_ID or not 0 <= msg.vehicle_id < self.n \
                     or msg.get_srcSystem() != msg.vehicle_id + 1:
                 self.foreign += 1
+                continue
+            if msg.phase >= PHASE_COUNT:  # hostile or corrupt: agents would drop it too
+                self.bad_frames += 1
                 continue
             k = msg.vehicle_id
             if self._learn:

@@ -15,7 +15,7 @@ class SitlStatus:
         rtf: simulated over wall time since the clock started (None before it has).
         attached: vehicles a companion has talked to; armed: vehicles armed.
         complete: the recorded mission is complete.
-        phases: vehicles per agent phase (launch, stabilise, assemble, transit, hover, land),
+        phases: vehicles per agent phase (launch, stabilise, assemble, transit, hover, land, failed),
             as the agents last reported them over the radio (empty without a radio).
         link_bytes_per_s_per_vehicle: radio bytes received per simulated second and vehicle.
     """
