@@ -108,14 +108,14 @@ class RotorFaults:
         self.failed_at_s = np.full(n_vehicles, np.nan)
         """(N,) mission time each vehicle's rotor failed (NaN: healthy)."""
 
-    def update(self, t_s: float) -> bool:
-        """Apply every failure due by t_s; True if any was applied now."""
-        fired = False
+    def update(self, t_s: float) -> list[RotorFailure]:
+        """Apply every failure due by t_s; returns those applied now (usually none)."""
+        fired = []
         while self.pending and self.pending[0].time_s <= t_s + 1e-9:
             f = self.pending.pop(0)
             self.scale[f.vehicle, f.rotor] = 0.0
             self.failed_at_s[f.vehicle] = t_s
-            fired = True
+            fired.append(f)
         return fired
 
     def fail_now(self, vehicle: int, rotor: int, t_s: float) -> None:

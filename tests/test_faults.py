@@ -188,3 +188,22 @@ def test_safety_tracker_judges_healthy_pairs_and_tracks_a_failed_vehicle_apart()
     assert s.colliding_pairs == {(0, 1), (2, 3)}
     back = SafetyTracker.from_json(s.to_json())
     assert back == s
+
+
+def test_sitl_applies_a_scheduled_failure_and_says_so():
+    """A `faults` entry in the SITL config stops the rotor at its time, with a CRITICAL STATUSTEXT."""
+    from sim_bridge.sitl.config import SitlConfig
+    from sim_bridge.sitl.server import BackgroundSitl
+    from sim_bridge.sitl.testing import MavClient, local_endpoints
+
+    cfg = SitlConfig(vehicles=2, endpoints=local_endpoints(2),
+                     faults=FaultsConfig(rotor_failures=(RotorFailureConfig(vehicle=2, time_s=0.5, rotor=2),)))
+    with BackgroundSitl(cfg) as sitl:
+        c = MavClient(cfg.endpoints.remote_base_port + 1)
+        try:
+            st = c.wait("STATUSTEXT", lambda m: "motor 2 failed" in m.text, 5.0)
+            assert st is not None and st.get_srcSystem() == 2 and st.severity == 2  # MAV_SEVERITY_CRITICAL
+            assert sitl.rotor_faults.scale.tolist() == [[1.0] * 4, [1.0, 0.0, 1.0, 1.0]]
+            assert sitl.rotor_faults.failed_at_s[1] == pytest.approx(0.5, abs=0.05)
+        finally:
+            c.close()

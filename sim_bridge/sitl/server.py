@@ -46,7 +46,7 @@ from sim_bridge.physics import Physics, WindField  # noqa: E402
 from sim_bridge.record import MissionTracker, RunResult  # noqa: E402
 from sim_bridge.record import warm_up as warm_up_tracker  # noqa: E402
 from sim_bridge.results import LinkStats  # noqa: E402
-from sim_bridge.sitl.autopilot import Autopilot  # noqa: E402
+from sim_bridge.sitl.autopilot import SEV_CRITICAL, Autopilot  # noqa: E402
 from sim_bridge.sitl.clock import SitlClock  # noqa: E402
 from sim_bridge.sitl.config import SitlConfig  # noqa: E402
 from sim_bridge.sitl.handler import MessageRouter  # noqa: E402
@@ -369,7 +369,9 @@ class SitlServer(SitlClock):
                                                         self.tick_s)
             self.fleet_sp.att_q_wxyz[m] = self._rate_q[m]
         self._fly_carrots()
-        self.rotor_faults.update(self.sim_s)
+        for f in self.rotor_faults.update(self.sim_s):  # what a GCS would see of an ESC that quits
+            self.autopilots[f.vehicle].events.append((SEV_CRITICAL, f"motor {f.rotor + 1} failed (scenario fault)"))
+            self.after_change(f.vehicle)
         active = np.fromiter((ap.needs_physics for ap in self.autopilots), bool, self.n)
         self.vehicle_steps += int(active.sum()) * self.steps_per_tick
         if active.any():
