@@ -123,7 +123,3 @@ class RotorFaults:
         self.scale[vehicle, rotor] = 0.0
         if np.isnan(self.failed_at_s[vehicle]):
             self.failed_at_s[vehicle] = t_s
-
-    def healthy(self, t_s: float) -> np.ndarray:
-        """(N,) bool: no rotor has failed by t_s."""
-        return ~(self.failed_at_s <= t_s)

@@ -3,10 +3,11 @@
 The loop is: release due vehicles from the carrier -> deliver the neighbour
 states the transport has due -> one batched Agent.step for every vehicle (the
 same Agent the MAVLink companion runs for one vehicle, its loops compiled) ->
-publish states at the swarm rate -> injected rotor failures due -> the autopilot model turns agent setpoints
-into inner-loop setpoints (throw recovery, hold, offboard) -> Physics.step for
+publish states at the swarm rate -> the autopilot model turns agent setpoints
+into inner-loop setpoints (throw recovery, hold, offboard) -> injected rotor
+failures due -> record -> Physics.step for
 physics_rate/agent_rate steps with the setpoints held (the inner-loop geometric
-or PID controller runs at the physics rate) -> record.
+or PID controller runs at the physics rate).
 """
 from __future__ import annotations
 

@@ -238,7 +238,7 @@ class MissionTracker:
         """
         healthy = None
         if failed_at_s is not None:
-            self.failed_at_s = np.asarray(failed_at_s, float).copy()
+            self.failed_at_s = failed_at_s  # the injector's array, read each tick (copied into the result)
             healthy = ~(self.failed_at_s <= t_s)
             if not healthy.all():
                 counted = healthy if counted is None else (np.asarray(counted, bool) & healthy)

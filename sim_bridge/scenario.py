@@ -9,7 +9,7 @@ from companion.mission import MissionConfig
 from companion.params import InnerLoopConfig, VehicleParams
 from sim_bridge.carrier import CarrierConfig
 from sim_bridge.estimator import EstimatorConfig
-from sim_bridge.faults import FaultsConfig
+from sim_bridge.faults import FaultsConfig, resolve_rotor_failures
 from sim_bridge.physics import WindConfig
 from sim_bridge.transport import LinkConfig
 
@@ -110,14 +110,7 @@ class ScenarioConfig:
         if self.safety.collision_m > self.safety.separation_m:
             raise ValueError(f"safety.collision_m ({self.safety.collision_m}) exceeds safety.separation_m "
                              f"({self.safety.separation_m})")
-        n = self.mission.n_vehicles
-        for f in self.faults.rotor_failures:
-            if f.vehicle > n:
-                raise ValueError(f"faults.rotor_failures: vehicle {f.vehicle} but mission.n_vehicles is {n}")
-        if len({f.vehicle for f in self.faults.rotor_failures}) < len(self.faults.rotor_failures):
-            raise ValueError("faults.rotor_failures: a vehicle is listed twice (one failure per vehicle)")
-        if len(self.faults.rotor_failures) + self.faults.random_rotor_failures > n:
-            raise ValueError(f"faults: more rotor failures than the mission's {n} vehicles")
+        resolve_rotor_failures(self.faults, self.mission.n_vehicles, self.seed)  # raises what the run would
         if self.physics.wind.active and self.vehicle.drag_coeff_n_per_mps <= 0:
             raise ValueError(
                 "physics.wind is set but vehicle.drag_coeff_n_per_mps is 0: wind acts only through drag, so it would "

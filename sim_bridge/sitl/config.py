@@ -12,7 +12,7 @@ from companion.config import STRICT, ConfigError, validate
 from companion.params import InnerLoopConfig, VehicleParams
 from sim_bridge.carrier import CarrierConfig
 from sim_bridge.estimator import EstimatorConfig
-from sim_bridge.faults import FaultsConfig
+from sim_bridge.faults import FaultsConfig, resolve_rotor_failures
 from sim_bridge.physics import WindConfig
 from sim_bridge.transport import LinkConfig
 
@@ -151,10 +151,7 @@ class SitlConfig:
     def _wind_needs_drag(self):
         if self.wind.active and self.vehicle.drag_coeff_n_per_mps <= 0:
             raise ValueError("wind is set but vehicle.drag_coeff_n_per_mps is 0: wind acts only through drag")
-        bad = [f.vehicle for f in self.faults.rotor_failures if f.vehicle > self.vehicles]
-        if bad or len(self.faults.rotor_failures) + self.faults.random_rotor_failures > self.vehicles:
-            raise ValueError(f"faults: vehicle(s) {bad or ''} beyond the {self.vehicles} simulated, or more failures "
-                             "than vehicles")
+        resolve_rotor_failures(self.faults, self.vehicles, self.seed)  # raises what the SITL would
         return self
 
 

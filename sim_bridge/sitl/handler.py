@@ -191,16 +191,18 @@ class MessageRouter:
         UNSUPPORTED for other units and types and on ArduPilot (which has no such command).
         instance 0 stops every motor, 1..4 one of them. A stopped motor stays stopped
         (FAILURE_TYPE_OK is refused: the simulated rotor does not come back)."""
-        if not ap.px4 or not all(math.isfinite(x) for x in (unit, kind, instance)):
-            return UNSUPPORTED if not ap.px4 else DENIED
+        if not ap.px4:
+            return UNSUPPORTED
+        if not all(math.isfinite(x) for x in (unit, kind, instance)):
+            return DENIED
         if self.ctx.params[k].get("SYS_FAILURE_EN", 0.0) != 1.0:
             return DENIED
-        if int(unit) != FAILURE_UNIT_SYSTEM_MOTOR or int(kind) != FAILURE_TYPE_OFF or not 0 <= int(instance) <= 4:
+        motor = int(instance)
+        if int(unit) != FAILURE_UNIT_SYSTEM_MOTOR or int(kind) != FAILURE_TYPE_OFF or not 0 <= motor <= 4:
             return UNSUPPORTED
-        rotors = range(4) if int(instance) == 0 else (int(instance) - 1,)
-        for r in rotors:
+        for r in (range(4) if motor == 0 else (motor - 1,)):
             self.ctx.rotor_faults.fail_now(k, r, self.ctx.sim_s)
-        ap.events.append((SEV_CRITICAL, f"motor failure injected: {'all' if int(instance) == 0 else int(instance)}"))
+        ap.events.append((SEV_CRITICAL, f"motor failure injected: {'all' if motor == 0 else motor}"))
         return ACCEPTED
 
     def _set_interval(self, k, msgid_f, interval_us) -> int:
