@@ -16,7 +16,7 @@ from sim_bridge.transport import LinkConfig
 
 @dataclass(config=STRICT)
 class PhysicsConfig:
-    rate_hz: float = Field(default=1000.0, ge=500.0)
+    rate_hz: float = Field(default=500.0, ge=500.0)
     """Physics (and inner-loop controller) rate; >= 500 Hz."""
     wind: WindConfig = WindConfig()
     ground_z_m: float | None = 0.0
