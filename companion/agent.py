@@ -104,6 +104,76 @@ def neighbour_sets_rows(rows, ids, p, v_pos, v_vel, v_flags, v_phase, age, stale
             ghost[r, j] = a < math.inf and not tr and air and not math.isnan(x0) and j != own
 
 
+@kernel
+def own_checks_rows(t_s, pos, vel, q, stamp_s, own_timeout_s, valid, cos_tilt):
+    """Whether each own state can be flown on, and how upright the vehicle is.
+
+    valid[i]: position, velocity and attitude quaternion all finite, and measured no more
+    than own_timeout_s before t_s. cos_tilt[i]: R[2, 2] of the attitude (1 level, -1
+    inverted), from the quaternion normalised (a zero quaternion is invalid anyway).
+
+    Args: pos, vel (n, 3); q (n, 4) w first; stamp_s (n,). Written: valid (n,) bool,
+        cos_tilt (n,).
+    """
+    for i in range(pos.shape[0]):
+        # One sum is finite iff every term is (a NaN or an inf anywhere poisons it).
+        total = ((pos[i, 0] + pos[i, 1]) + pos[i, 2]) + ((vel[i, 0] + vel[i, 1]) + vel[i, 2]) \
+            + (((q[i, 0] + q[i, 1]) + q[i, 2]) + q[i, 3])
+        valid[i] = math.isfinite(total) and t_s - stamp_s[i] <= own_timeout_s
+        qn2 = max(q[i, 0] * q[i, 0] + q[i, 1] * q[i, 1] + q[i, 2] * q[i, 2] + q[i, 3] * q[i, 3], 1e-300)
+        cos_tilt[i] = 1.0 - 2.0 * (q[i, 1] * q[i, 1] + q[i, 2] * q[i, 2]) / qn2
+
+
+@kernel
+def finish_rows(rows, p, v, acc, h_pos, h_vel, valid, ready, phase, state_kind, lead_s, yaw_rad, land_speed_mps,
+                assembled_pos_m, assembled_speed_mps, sp_pos, sp_vel, sp_acc, sp_yaw, slot, assembled, flags):
+    """The setpoints, slots, assembled and published flags of a tick (Agent.step).
+
+    Formation row rows[r] (index into the own vehicles) flies acc[r]: as an acceleration,
+    and with state_kind also as the state it leads to lead_s ahead (p + v lead +
+    acc lead^2 / 2, v + acc lead), so that if the stream stops the autopilot holds near
+    where the vehicle was heading; it is assembled once within assembled_pos_m of its
+    slot h_pos[r] and assembled_speed_mps of the slot's velocity. Then every own
+    vehicle: an invalid own state in ASSEMBLE or later stops (zero velocity, flown on
+    the autopilot's own estimate); LAND descends at land_speed_mps; flags gets the
+    FLAG_* bits.
+
+    Args: rows (R,); p, v (n, 3) own state; acc, h_pos, h_vel (R, 3); valid, ready (n,)
+        bool; phase (n,). Written: sp_pos, sp_vel, sp_acc, slot (n, 3), sp_yaw (n,)
+        (NaN where not commanded, as given), assembled (n,) bool, flags (n,) uint8.
+    """
+    for r in range(rows.shape[0]):
+        i = rows[r]
+        d2 = 0.0
+        e2 = 0.0
+        for a in range(3):
+            pa, va, aa = p[i, a], v[i, a], acc[r, a]
+            sp_acc[i, a] = aa
+            if state_kind:
+                sp_pos[i, a] = pa + va * lead_s + 0.5 * aa * lead_s * lead_s
+                sp_vel[i, a] = va + aa * lead_s
+            slot[i, a] = h_pos[r, a]
+            d2 += (pa - h_pos[r, a]) ** 2
+            e2 += (va - h_vel[r, a]) ** 2
+        sp_yaw[i] = yaw_rad
+        if math.sqrt(d2) < assembled_pos_m and math.sqrt(e2) < assembled_speed_mps:
+            assembled[i] = True
+    for i in range(phase.shape[0]):
+        if not valid[i] and phase[i] >= _ASSEMBLE:
+            sp_vel[i, 0], sp_vel[i, 1], sp_vel[i, 2] = 0.0, 0.0, 0.0
+        elif valid[i] and phase[i] == _LAND:
+            sp_vel[i, 0], sp_vel[i, 1], sp_vel[i, 2] = 0.0, 0.0, land_speed_mps
+            sp_yaw[i] = yaw_rad
+        f = 0
+        if assembled[i]:
+            f |= FLAG_ASSEMBLED
+        if valid[i]:
+            f |= FLAG_OWN_VALID
+        if ready[i]:
+            f |= FLAG_READY
+        flags[i] = f
+
+
 @dataclass
 class OwnState:
     """What an agent knows of its own n vehicles, first hand (from their autopilots).
@@ -136,6 +206,8 @@ class AgentKernels:
     pair_repulsion_rows: Callable = pair_repulsion_rows
     segment_repulsion_rows: Callable = segment_repulsion_rows
     clip_sum_rows: Callable = clip_sum_rows
+    own_checks_rows: Callable = own_checks_rows
+    finish_rows: Callable = finish_rows
 
 
 @dataclass
@@ -188,12 +260,14 @@ class Agent:
         self._k = gains_vector(cfg.consensus)
         self._cos_tilt_max = math.cos(math.radians(cfg.phases.stable_tilt_deg))
         self._cos_lost = math.cos(math.radians(cfg.phases.lost_tilt_deg))
-        self._h_vel, self._h_acc = np.empty((mission.n, 3)), np.empty((mission.n, 3))
+        self._zeros = np.zeros(0, np.int64)
         k = self._n_obstacles = len(mission.obstacle_radii_m)
         # Static obstacles as zero-length capsules, one copy per own row (read-only views).
         self._obs_ends = np.broadcast_to(mission.obstacle_centres_ned_m, (n, k, 3))
         self._obs_r = np.broadcast_to(mission.obstacle_radii_m, (n, k))
         self._obs_use = np.broadcast_to(True, (n, k))
+        self._no_rows = np.empty((0, 3))
+        self._buffers: tuple[np.ndarray, ...] | None = None
 
     # ------------------------------------------------------------------ phases
     def _advance_phases(self, t_s: float, own: OwnState, valid: np.ndarray, cos_tilt: np.ndarray) -> None:
@@ -266,33 +340,21 @@ class Agent:
         ids = self.ids[rows]
         p, v = own.pos_ned_m[rows], own.vel_ned_mps[rows]
         n_veh = view.n_vehicles
-        pred = np.empty((n_rows, n_veh, 3))
-        usable, repel, ghost = (np.empty((n_rows, n_veh), np.bool_) for _ in range(3))
+        pred, usable, repel, ghost = self._neighbour_buffers(n_rows, n_veh)
         kern.neighbour_sets_rows(rows, ids, p, view.pos_ned_m, view.vel_ned_mps, view.flags, view.phase, age,
                                  sw.stale_after_s, IN_FORMATION, min(a.sensing_radius_m, a.vehicle_influence_m),
                                  pred, usable, repel, ghost)
-        vv = view.vel_ned_mps[rows]
+        # Every own row flies formation (the usual case): the view's arrays, not row copies.
+        whole = n_rows == view.n_receivers
+        vv = view.vel_ned_mps if whole else view.vel_ned_mps[rows]
 
-        # Rows holding different transit starts fly different references; usually one group.
-        go = self.t_go_s[rows]
-        gl = go.tolist()  # a handful of floats: Python beats numpy's per-call cost here
-        g0 = gl[0]
-        same = all(x == g0 for x in gl) if g0 == g0 else all(x != x for x in gl)
-        groups = [g0] if same else list(np.unique(np.where(np.isnan(go), -np.inf, go)))
-        if len(groups) == 1:
-            u1, h_pos_rows, h_vel_rows = self._consensus(t_s, groups[0], p, v, ids, pred, vv, usable)
-        else:
-            u1, h_pos_rows, h_vel_rows = np.empty((n_rows, 3)), np.empty((n_rows, 3)), np.empty((n_rows, 3))
-            for g in groups:
-                sel = np.flatnonzero((go == g) | (np.isnan(go) & (g == -np.inf)))
-                u1[sel], h_pos_rows[sel], h_vel_rows[sel] = self._consensus(
-                    t_s, math.nan if g == -np.inf else g, p[sel], v[sel], ids[sel], pred[sel], vv[sel], usable[sel])
+        u1, h_pos_rows, h_vel_rows = self._consensus(t_s, self.t_go_s[rows], p, v, ids, pred, vv, usable)
 
         u2 = np.zeros((n_rows, 3))
         kern.pair_repulsion_rows(p, pred, repel, ids, a.vehicle_gain_mps2, a.vehicle_influence_m,
                                  min(a.sensing_radius_m, a.vehicle_influence_m), a.kappa, u2)
         if ghost.any():
-            top, bottom = self._ghost_columns(view.pos_ned_m[rows], vv)
+            top, bottom = self._ghost_columns(view.pos_ned_m if whole else view.pos_ned_m[rows], vv)
             kern.segment_repulsion_rows(p, top, bottom, np.full(ghost.shape, sw.ghost_radius_m), ghost,
                                         a.vehicle_gain_mps2, a.vehicle_influence_m, a.kappa, u2)
         if self._n_obstacles:
@@ -303,20 +365,49 @@ class Agent:
         kern.clip_sum_rows(u1, u2, cfg.consensus_accel_max_mps2, cfg.total_accel_max_mps2, acc)
         return acc, h_pos_rows, h_vel_rows
 
-    def _consensus(self, t_s, t_go_s, p, v, ids, pred, vv, usable):
-        """Eq. 27 for rows sharing one transit start: (u1, slot, slot velocity), each (R, 3)."""
+    def _neighbour_buffers(self, n_rows: int, n_veh: int) -> tuple[np.ndarray, ...]:
+        """pred (R, N, 3) and usable, repel, ghost (R, N) bool for this tick, reused from the
+        last tick when R is the same: neighbour_sets_rows writes every element, and a fresh
+        (R, N, 3) array per tick costs page faults once R N is large (the headless batch)."""
+        buf = self._buffers
+        if buf is None or buf[0].shape[:2] != (n_rows, n_veh):
+            buf = self._buffers = (np.empty((n_rows, n_veh, 3)),) + tuple(
+                np.empty((n_rows, n_veh), np.bool_) for _ in range(3))
+        return buf
+
+    def _consensus(self, t_s, go, p, v, ids, pred, vv, usable):
+        """Eq. 27 for the rows, each on the reference of the transit start it holds
+        (go (R,), NaN = none agreed yet: the assembly point). Rows holding different
+        transit starts fly different references; usually there is one.
+        Returns (u1, slot, slot velocity), each (R, 3); u1 is NaN in a row that read a
+        non-finite value (excluded by the checks of _formation_accel: never flown)."""
         m = self.mission
-        c_pos, c_vel, c_acc = m.path.at(m.tau_s(t_s, t_go_s))
-        h_pos = m.offsets_ned_m + c_pos
-        h_vel, h_acc = self._h_vel, self._h_acc  # every slot moves with the centre
-        h_vel[:] = c_vel
-        h_acc[:] = c_acc
+        gl = go.tolist()  # Python's list beats numpy's per-call cost here
+        g0 = gl[0]
+        if gl.count(g0) == len(gl) if g0 == g0 else all(x != x for x in gl):
+            groups, h_sel = [g0], self._zero_rows(len(gl))
+        else:
+            keys, h_sel = np.unique(np.where(np.isnan(go), -np.inf, go), return_inverse=True)
+            groups = [math.nan if g == -np.inf else g for g in keys.tolist()]
+        n_ref = len(groups)
+        h_pos, h_vel, h_acc = (np.empty((n_ref, m.n, 3)) for _ in range(3))
+        for g, t_go_s in enumerate(groups):
+            c_pos, c_vel, c_acc = m.path.at(m.tau_s(t_s, t_go_s))
+            h_pos[g] = m.offsets_ned_m + c_pos
+            h_vel[g] = c_vel  # every slot moves with the centre
+            h_acc[g] = c_acc
         out = np.empty((len(ids), 3))
-        bad = self.kernels.consensus_rows(p, v, ids, pred, vv, usable, h_pos, h_vel, h_acc, m.weights, m.neighbours,
-                                          self._k, m.cfg.formation_error_max_m, out)
-        if bad >= 0:  # excluded by the checks of _formation_accel; never fly on it
-            out[:] = np.nan
-        return out, h_pos[ids], h_vel[ids]
+        self.kernels.consensus_rows(p, v, ids, pred, vv, usable, h_pos, h_vel, h_acc, h_sel, m.weights, m.neighbours,
+                                    self._k, m.cfg.formation_error_max_m, out)
+        if n_ref == 1:
+            return out, h_pos[0, ids], h_vel[0, ids]
+        return out, h_pos[h_sel, ids], h_vel[h_sel, ids]
+
+    def _zero_rows(self, n_rows: int) -> np.ndarray:
+        """(n_rows,) int64 zeros, kept between ticks."""
+        if len(self._zeros) != n_rows:
+            self._zeros = np.zeros(n_rows, np.int64)
+        return self._zeros
 
     def _ghost_columns(self, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where a silent vehicle can be: its autopilot brakes to Hold (PX4 offboard loss,
@@ -345,11 +436,9 @@ class Agent:
         cfg = m.cfg
         n = len(self.ids)
         q = own.att_q_wxyz
-        # One sum per row is finite iff every term is (a NaN or an inf anywhere poisons it).
-        valid = np.isfinite(own.pos_ned_m.sum(axis=1) + own.vel_ned_mps.sum(axis=1) + q.sum(axis=1)) & (
-            t_s - own.stamp_s <= cfg.swarm.own_timeout_s)
-        qn2 = np.maximum(np.einsum("ij,ij->i", q, q), 1e-300)  # a zero quaternion gives 1 - 0: caught by valid
-        cos_tilt = 1.0 - 2.0 * (q[:, 1] * q[:, 1] + q[:, 2] * q[:, 2]) / qn2  # R[2, 2] of the attitude
+        valid, cos_tilt = np.empty(n, np.bool_), np.empty(n)
+        self.kernels.own_checks_rows(t_s, own.pos_ned_m, own.vel_ned_mps, q, np.asarray(own.stamp_s, float),
+                                     cfg.swarm.own_timeout_s, valid, cos_tilt)
         age = view.age_s(t_s)
         self._advance_phases(t_s, own, valid, cos_tilt)
         phase = self.phase
@@ -359,29 +448,17 @@ class Agent:
         rows = np.flatnonzero(IN_FORMATION[phase] & valid)
         if len(rows):
             acc, h_pos, h_vel = self._formation_accel(t_s, rows, own, view, age)
-            p, v = own.pos_ned_m[rows], own.vel_ned_mps[rows]
-            sp.acc_ned_mps2[rows] = acc
-            if cfg.setpoint.kind == "state":
-                # The state this acceleration leads to one setpoint period ahead: if the
-                # stream stops, the autopilot holds near where the vehicle was heading.
-                lead = cfg.setpoint.lead_s
-                sp.pos_ned_m[rows] = p + v * lead + 0.5 * acc * lead * lead
-                sp.vel_ned_mps[rows] = v + acc * lead
-            sp.yaw_rad[rows] = m.yaw_rad
-            slot[rows] = h_pos
-            ph = cfg.phases
-            near = (_norm_rows(p - h_pos) < ph.assembled_pos_m) & (_norm_rows(v - h_vel) < ph.assembled_speed_mps)
-            self.assembled[rows[near]] = True
-
+        else:
+            acc = h_pos = h_vel = self._no_rows
+        ph = cfg.phases
+        flags = np.empty(n, np.uint8)
+        self.kernels.finish_rows(rows, own.pos_ned_m, own.vel_ned_mps, acc, h_pos, h_vel, valid,
+                                 np.asarray(own.ready, np.bool_), phase, cfg.setpoint.kind == "state",
+                                 cfg.setpoint.lead_s, m.yaw_rad, ph.land_speed_mps, ph.assembled_pos_m,
+                                 ph.assembled_speed_mps, sp.pos_ned_m, sp.vel_ned_mps, sp.acc_ned_mps2, sp.yaw_rad,
+                                 slot, self.assembled, flags)
         # After this tick's assembled flags: a vehicle that reaches its slot now counts now.
         self._agree_t_go(t_s, view, age)
-        hold = ~valid & (phase >= _ASSEMBLE)
-        sp.vel_ned_mps[hold] = 0.0  # a stop, flown on the autopilot's own estimate
-        land = valid & (phase == _LAND)
-        sp.vel_ned_mps[land] = [0.0, 0.0, cfg.phases.land_speed_mps]
-        sp.yaw_rad[land] = m.yaw_rad
-        flags = (np.where(self.assembled, FLAG_ASSEMBLED, 0) | np.where(valid, FLAG_OWN_VALID, 0)
-                 | np.where(own.ready, FLAG_READY, 0)).astype(np.uint8)
         published = SwarmStates(self.ids.copy(), np.asarray(own.stamp_s, float).copy(), own.pos_ned_m.copy(),
                                 own.vel_ned_mps.copy(), q.copy(), phase.copy(), flags, self.t_go_s.copy())
         return AgentOutput(sp, phase.copy(), self.assembled.copy(), self.t_go_s.copy(), valid, slot, published)

@@ -62,6 +62,10 @@ class SwarmStates:
         """The rows selected by idx (index array or mask), as a new SwarmStates."""
         return SwarmStates(*(np.asarray(getattr(self, f))[idx] for f in self.__dataclass_fields__))
 
+    def rows(self, sl: slice) -> "SwarmStates":
+        """The rows of slice sl, as views of these arrays (no copy)."""
+        return SwarmStates(*(getattr(self, f)[sl] for f in self.__dataclass_fields__))
+
 
 @dataclass
 class SwarmView:
@@ -89,6 +93,7 @@ class SwarmView:
     received: np.ndarray
     ignored_old: np.ndarray
     receive_kernel: Callable | None = field(default=None, repr=False, compare=False)
+    _broadcast_idx: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
     def unknown(cls, n_receivers: int, n_vehicles: int, receive_kernel: Callable | None = None) -> "SwarmView":
@@ -108,8 +113,7 @@ class SwarmView:
 
     def age_s(self, t_s: float) -> np.ndarray:
         """(n, N) age of every entry at mission time t_s, s; inf where never heard."""
-        age = t_s - self.stamp_s
-        return np.where(np.isnan(age), np.inf, age)
+        return np.fmin(t_s - self.stamp_s, np.inf)  # fmin takes the number: NaN (never heard) -> inf
 
     def assembled(self) -> np.ndarray:
         """(n, N) bool: the FLAG_ASSEMBLED bit of every entry."""
@@ -145,7 +149,10 @@ class SwarmView:
         """
         k, n = len(states), self.n_receivers
         if k:
-            self._apply(np.repeat(np.arange(n), k), np.tile(np.arange(k), n), states)
+            idx = self._broadcast_idx.get(k)
+            if idx is None:  # a handful of sizes recur (the publishers per tick): build each once
+                idx = self._broadcast_idx[k] = (np.repeat(np.arange(n), k), np.tile(np.arange(k), n))
+            self._apply(idx[0], idx[1], states)
 
     def receive_one(self, row: int, vehicle_id: int, stamp_s: float, pos_ned_m, vel_ned_mps, phase: int,
                     flags: int, t_go_s: float) -> bool:

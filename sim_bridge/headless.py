@@ -3,24 +3,30 @@
 The loop is: release due vehicles from the carrier -> deliver the neighbour
 states the transport has due -> one batched Agent.step for every vehicle (the
 same Agent the MAVLink companion runs for one vehicle, its loops compiled) ->
-publish states at the swarm rate -> the autopilot model turns agent setpoints
-into inner-loop setpoints (throw recovery, hold, offboard) -> injected rotor
-failures due -> record -> Physics.step for
-physics_rate/agent_rate steps with the setpoints held (the inner-loop geometric
-or PID controller runs at the physics rate).
+the autopilot model turns agent setpoints into inner-loop setpoints (throw
+recovery, hold, offboard) -> publish states at the swarm rate -> injected rotor
+failures due -> record -> Physics.step for physics_rate/agent_rate steps with the
+setpoints held (the inner-loop geometric or PID controller runs at the physics rate).
+
+`run_batch` flies several seeds of one scenario side by side: their vehicles are
+rows of the same Agent.step and autopilot-model call; everything else is per run.
+A sweep uses it to pay the per-tick Python cost once for many runs.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit
 from tqdm import tqdm
 
 from companion import frames
 from companion.agent import Agent, OwnState, Phase
 from companion.config import ConfigError
+from companion.control.geometric import pack_setpoint
 from companion.mission import Mission
 from companion.state import FleetSetpoint, FleetState
 from companion.swarm import SwarmView, receive_rows, swarm_due
@@ -50,6 +56,21 @@ def release_into(state: FleetState, rows: np.ndarray, cfg: ScenarioConfig, t_s: 
 AP_DOCKED, AP_THROW, AP_HOLD, AP_OFFBOARD = 0, 1, 2, 3
 
 
+@njit(cache=True)
+def _all_commanded(pos, vel, acc):
+    """Every row commands something: a finite position, velocity or acceleration
+    component (an all-NaN row is the agent sending nothing)."""
+    for i in range(pos.shape[0]):
+        hit = False
+        for a in range(3):
+            if pos[i, a] == pos[i, a] or vel[i, a] == vel[i, a] or acc[i, a] == acc[i, a]:
+                hit = True
+                break
+        if not hit:
+            return False
+    return True
+
+
 @dataclass
 class AutopilotModel:
     """The headless stand-in for each vehicle's autopilot, vectorised (N vehicles).
@@ -64,6 +85,9 @@ class AutopilotModel:
     mode: np.ndarray
     hold_pos: np.ndarray
     hold_yaw: np.ndarray
+    all_offboard: bool = False
+    """Every vehicle flew offboard after the last call (then a call that finds every
+    vehicle still commanded only returns the agent's setpoints)."""
 
     @classmethod
     def docked(cls, n: int) -> "AutopilotModel":
@@ -75,11 +99,16 @@ class AutopilotModel:
 
     def release(self, rows: np.ndarray, state: FleetState) -> None:
         self.mode[rows] = AP_THROW
+        self.all_offboard = False
         self.hold_yaw[rows] = frames.yaw_rad(state.rot_body_to_ned[rows])
 
     def setpoint(self, state: FleetState, agent_sp: FleetSetpoint) -> FleetSetpoint:
         """The inner-loop setpoint of every vehicle this tick (advances the mode machine).
         When every vehicle flies offboard this is agent_sp itself, not a copy."""
+        if self.all_offboard and _all_commanded(agent_sp.pos_ned_m, agent_sp.vel_ned_mps, agent_sp.acc_ned_mps2):
+            return agent_sp  # the usual case once the swarm flies
+        commanded = ~np.all(np.isnan(agent_sp.pos_ned_m) & np.isnan(agent_sp.vel_ned_mps)
+                            & np.isnan(agent_sp.acc_ned_mps2), axis=1)
         thr = self.mode == AP_THROW
         if thr.any():
             r = state.rot_body_to_ned[thr]
@@ -89,8 +118,6 @@ class AutopilotModel:
             self.mode[rows] = AP_HOLD
             self.hold_pos[rows] = hold_point(state.pos_ned_m[rows], state.vel_ned_mps[rows])
             self.hold_yaw[rows] = frames.yaw_rad(state.rot_body_to_ned[rows])
-        commanded = ~np.all(np.isnan(agent_sp.pos_ned_m) & np.isnan(agent_sp.vel_ned_mps)
-                            & np.isnan(agent_sp.acc_ned_mps2), axis=1)
         lost = (self.mode == AP_OFFBOARD) & ~commanded
         if lost.any():
             self.hold_pos[lost] = hold_point(state.pos_ned_m[lost], state.vel_ned_mps[lost])
@@ -98,7 +125,8 @@ class AutopilotModel:
             self.mode[lost] = AP_HOLD
         self.mode[(self.mode == AP_HOLD) & commanded] = AP_OFFBOARD
         off = self.mode == AP_OFFBOARD
-        if off.all():  # the usual case once the swarm flies: the agent's setpoints, as they are
+        self.all_offboard = bool(off.all())
+        if self.all_offboard:
             return agent_sp
         sp = FleetSetpoint.empty(len(self.mode))
         sp.assign(off, agent_sp.select(off))
@@ -113,7 +141,7 @@ class AutopilotModel:
 
 def run_scenario(cfg: ScenarioConfig, progress: bool = True, clock=None,
                  transport: NeighbourTransport | None = None) -> RunResult:
-    """Fly the scenario headless and return the recorded run.
+    """Fly the scenario headless and return the recorded run (a batch of one: run_batch).
 
     Args:
         cfg: validated scenario.
@@ -125,79 +153,161 @@ def run_scenario(cfg: ScenarioConfig, progress: bool = True, clock=None,
         FormationUnstableError: the mission's consensus gains are not stabilising.
         ConfigError: a ground-launch mission (only the fleet flies those).
     """
+    return run_batch([cfg], progress, clock, None if transport is None else [transport])[0]
+
+
+class _Run:
+    """One seed of a batch: its rows of the batch's arrays, its own random streams,
+    physics (wind), link, estimator, faults and record. Everything here is what a
+    single run has; only the agent and the autopilot model are shared, row by row."""
+
+    def __init__(self, cfg: ScenarioConfig, mission: Mission, rows: slice, state: FleetState, view: SwarmView,
+                 transport: NeighbourTransport | None, log_every: int):
+        n = mission.n
+        self.cfg, self.rows = cfg, rows
+        self.rng = np.random.default_rng(cfg.seed)
+        self.physics = Physics(cfg.vehicle, cfg.inner_loop, dt_s=1.0 / cfg.physics.rate_hz, wind=cfg.physics.wind,
+                               ground_z_m=cfg.physics.ground_z_m, rng=self.rng)
+        self.transport = transport or make_transport(cfg.link, n, cfg.seed)
+        self.estimator = Estimator(cfg.estimator, n, np.random.default_rng([cfg.seed, 0x455354])) \
+            if cfg.estimator.active else None
+        self.faults = RotorFaults(resolve_rotor_failures(cfg.faults, n, cfg.seed), n) if cfg.faults.active else None
+        # Row views of the batch's arrays: what this run's parts write lands in the batch.
+        self.state = FleetState(*(getattr(state, f)[rows] for f in FleetState.__dataclass_fields__))
+        self.view = SwarmView(*(getattr(view, f)[rows] for f in _VIEW_ARRAYS), receive_kernel=view.receive_kernel)
+        self.tracker = MissionTracker(cfg, mission, log_every)
+        self.released = np.zeros(n, dtype=bool)
+        self.rel_s = release_times_s(cfg.carrier, n)
+        self.next_release = min(self.rel_s) if n else math.inf  # (a float compare per tick)
+        self.n_released = 0
+        self.vehicle_steps = 0
+        self.result: RunResult | None = None
+
+
+_VIEW_ARRAYS = ("pos_ned_m", "vel_ned_mps", "stamp_s", "phase", "flags", "t_go_s", "received", "ignored_old")
+
+
+def run_batch(cfgs: list[ScenarioConfig], progress: bool = False, clock=None,
+              transports: list[NeighbourTransport] | None = None) -> list[RunResult]:
+    """Fly several runs of one scenario that differ only in their seed, side by side.
+
+    Each run's vehicles are rows of one batch: one Agent.step and one autopilot-model
+    call cover every run's vehicles (both work row by row, so a row's result does not
+    depend on its neighbours in the batch), while every run keeps its own random
+    streams, physics, link, estimator, faults and record. So a run's result is the same,
+    to the last bit, alone or in any batch (tests/test_headless_batch.py); what a batch
+    saves is the per-tick cost of the Python and numpy calls, paid once for all runs.
+    A run that completes stops there; the batch goes on until every run has.
+
+    Args:
+        cfgs: validated scenarios, equal except for their seed.
+        progress: tqdm progress bar over simulated time.
+        clock: wall-clock function (s); time.perf_counter by default. Each run's wall_s is
+            the batch's wall time until that run ended, divided by the batch size.
+        transports: one per run (default: from each cfg.link and seed).
+    Returns:
+        One RunResult per cfg, in order.
+    Raises:
+        ValueError: the scenarios differ in more than their seed, or no scenario.
+        FormationUnstableError: the mission's consensus gains are not stabilising.
+        ConfigError: a ground-launch mission (only the fleet flies those).
+    """
+    if not cfgs:
+        raise ValueError("run_batch needs at least one scenario")
+    cfg = cfgs[0]
+    if any(dataclasses.replace(c, seed=cfg.seed) != cfg for c in cfgs[1:]):
+        raise ValueError("run_batch: the scenarios must differ in their seed only")
     if cfg.mission.launch != "carrier":
         raise ConfigError(f"{cfg.name}: mission.launch is {cfg.mission.launch!r}: the headless runner flies carrier "
                           "launches only; fly a ground launch with `swarmdrop run` (the SITL and agents)")
     clock = clock or time.perf_counter
-    rng = np.random.default_rng(cfg.seed)
     mission = Mission(cfg.mission)
-    n = mission.n
-    physics = Physics(
-        cfg.vehicle, cfg.inner_loop, dt_s=1.0 / cfg.physics.rate_hz, wind=cfg.physics.wind,
-        ground_z_m=cfg.physics.ground_z_m, rng=rng,
-    )
+    n, n_runs = mission.n, len(cfgs)
     ids = np.arange(n)
-    agent = Agent(mission, ids, kernels=agent_kernels())
-    transport = transport or make_transport(cfg.link, n, cfg.seed)
-    estimator = Estimator(cfg.estimator, n, np.random.default_rng([cfg.seed, 0x455354])) if cfg.estimator.active else None
-    faults = RotorFaults(resolve_rotor_failures(cfg.faults, n, cfg.seed), n) if cfg.faults.active else None
-    view = SwarmView.unknown(n, n, receive_kernel=compiled(receive_rows))
-    autopilot = AutopilotModel.docked(n)
+    agent = Agent(mission, np.tile(ids, n_runs), kernels=agent_kernels())
+    view = SwarmView.unknown(n * n_runs, n, receive_kernel=compiled(receive_rows))
+    autopilot = AutopilotModel.docked(n * n_runs)
     dt_agent = 1.0 / cfg.agent.rate_hz
     sub_steps = int(round(cfg.physics.rate_hz / cfg.agent.rate_hz))
     log_every = int(round(cfg.agent.rate_hz / cfg.output.log_rate_hz))
-
-    state = FleetState.zeros(n)
-    to_quat, q_own = compiled(frames.rot_to_quat_rows), np.empty((n, 4))  # 1 us, numpy's twin 100 us
-    released = np.zeros(n, dtype=bool)
-    rel_s = release_times_s(cfg.carrier, n)
-    rel_pos = carrier_position_ned_m(cfg.carrier, rel_s)
-    tracker = MissionTracker(cfg, mission, log_every)
+    state = FleetState.zeros(n * n_runs)
+    runs = [_Run(c, mission, slice(k * n, (k + 1) * n), state, view, None if transports is None else transports[k],
+                 log_every) for k, c in enumerate(cfgs)]
+    to_quat, q_own = compiled(frames.rot_to_quat_rows), np.empty((n * n_runs, 4))  # 1 us, numpy's twin 100 us
+    released = np.zeros(n * n_runs, dtype=bool)
+    estimated = runs[0].estimator is not None  # (the same estimator config in every run)
+    p_obs, v_obs, r_obs = np.empty((n * n_runs, 3)), np.empty((n * n_runs, 3)), np.empty((n * n_runs, 3, 3))
     wall0 = clock()
     n_ticks = int(math.ceil(cfg.duration_s / dt_agent))
-    vehicle_steps = 0
     bar = tqdm(total=round(cfg.duration_s), unit="sim-s", disable=not progress, desc=cfg.name, mininterval=0.5)
+    # Who publishes at tick k depends on k modulo the ticks per swarm period only: one
+    # mask per offset, from swarm_due itself.
+    period_us = round(dt_agent * 1e6)
+    n_offsets = max(1, int(round(1e6 / (cfg.mission.swarm.rate_hz * period_us))))
+    publish_at = [swarm_due(j * period_us, cfg.mission.swarm.rate_hz, ids, period_us) for j in range(n_offsets)]
+    publish_all = [np.tile(m, n_runs) for m in publish_at]
+    live = list(runs)
     for k in range(n_ticks + 1):
         t = k * dt_agent
-        due = ~released & (rel_s <= t + 1e-9)
-        if due.any():
-            release_into(state, np.flatnonzero(due), cfg, t, rng)
-            autopilot.release(np.flatnonzero(due), state)
-            released |= due
-        docked = ~released
-        state.pos_ned_m[docked] = carrier_position_ned_m(cfg.carrier, t)
-        state.vel_ned_mps[docked] = cfg.carrier.vel_ned_mps
-
-        transport.deliver(t, view)
-        if estimator is None:
-            to_quat(state.rot_body_to_ned, q_own)
-            own = OwnState(state.pos_ned_m, state.vel_ned_mps, q_own, np.full(n, t), released, autopilot.ready)
-        else:  # what the autopilot's estimator would report (the SITL applies the same model)
-            p_obs, v_obs, r_obs = estimator.observe(t, state.pos_ned_m, state.vel_ned_mps, state.rot_body_to_ned)
+        for r in live:
+            if r.next_release <= t + 1e-9:
+                due = ~r.released & (r.rel_s <= t + 1e-9)
+                release_into(r.state, np.flatnonzero(due), r.cfg, t, r.rng)
+                autopilot.release(r.rows.start + np.flatnonzero(due), state)
+                r.released |= due
+                released[r.rows] = r.released
+                r.n_released = int(r.released.sum())
+                r.next_release = min(r.rel_s[~r.released], default=math.inf)
+            if r.n_released < n:
+                docked = ~r.released
+                r.state.pos_ned_m[docked] = carrier_position_ned_m(r.cfg.carrier, t)
+                r.state.vel_ned_mps[docked] = r.cfg.carrier.vel_ned_mps
+            r.transport.deliver(t, r.view)
+            if r.estimator is not None:  # what the autopilot's estimator would report (as the SITL does)
+                p_obs[r.rows], v_obs[r.rows], r_obs[r.rows] = r.estimator.observe(
+                    t, r.state.pos_ned_m, r.state.vel_ned_mps, r.state.rot_body_to_ned)
+        if estimated:
             to_quat(r_obs, q_own)
-            own = OwnState(p_obs, v_obs, q_own, np.full(n, t), released, autopilot.ready)
+            own = OwnState(p_obs, v_obs, q_own, np.full(n * n_runs, t), released, autopilot.ready)
+        else:
+            to_quat(state.rot_body_to_ned, q_own)
+            own = OwnState(state.pos_ned_m, state.vel_ned_mps, q_own, np.full(n * n_runs, t), released,
+                           autopilot.ready)
         out = agent.step(t, own, view)
-        publish = swarm_due(round(t * 1e6), cfg.mission.swarm.rate_hz, ids, round(dt_agent * 1e6))
-        if publish.any():
-            transport.publish(t, out.published.select(publish), state.pos_ned_m)
+        offset = ((round(t * 1e6) + period_us // 2) // period_us) % n_offsets
+        per_run = int(publish_at[offset].sum())
+        published = out.published.select(publish_all[offset]) if per_run else None
         sp = autopilot.setpoint(state, out.setpoint)
-        if estimator is not None:  # the autopilot flies on its estimate (sim_bridge/estimator.py)
-            sp.pos_ned_m = to_true_frame(sp.pos_ned_m, estimator.offset_ned_m)
-        if faults is not None:
-            faults.update(t)
-        done = tracker.update(t, state, sp, released, out.phase, out.assembled, out.t_go_s,
-                              failed_at_s=None if faults is None else faults.failed_at_s)
-        if done or k == n_ticks:
+        if estimated:  # the autopilot flies on its estimate (sim_bridge/estimator.py)
+            for r in live:
+                if r.estimator is not None:
+                    sp.pos_ned_m[r.rows] = to_true_frame(sp.pos_ned_m[r.rows], r.estimator.offset_ned_m)
+        packed = pack_setpoint(sp)  # once for every run
+        for r in list(live):
+            i = r.rows.start // n
+            if published is not None:  # the selected rows come run by run, per_run each
+                r.transport.publish(t, published.rows(slice(i * per_run, (i + 1) * per_run)), r.state.pos_ned_m)
+            if r.faults is not None:
+                r.faults.update(t)
+            sp_r = FleetSetpoint(*(getattr(sp, f)[r.rows] for f in FleetSetpoint.__dataclass_fields__))
+            done = r.tracker.update(t, r.state, sp_r, r.released, out.phase[r.rows], out.assembled[r.rows],
+                                    out.t_go_s[r.rows], failed_at_s=None if r.faults is None else r.faults.failed_at_s)
+            if done or k == n_ticks:
+                r.result = r.tracker.result(r.rel_s, carrier_position_ned_m(r.cfg.carrier, r.rel_s),
+                                            (clock() - wall0) / n_runs, t, r.vehicle_steps, r.transport.stats())
+                live.remove(r)
+                continue
+            r.physics.step(r.state, packed[r.rows], n_steps=sub_steps, active=r.released,
+                           rotor_scale=None if r.faults is None else r.faults.scale)
+            r.vehicle_steps += sub_steps * r.n_released
+        if not live:
             break
-        physics.step(state, sp, n_steps=sub_steps, active=released,
-                     rotor_scale=None if faults is None else faults.scale)
-        vehicle_steps += sub_steps * int(released.sum())
         if int(t + dt_agent) != int(t):
             bar.update(1)
             bar.set_postfix_str(_phase_summary(out.phase))
     bar.total = bar.n  # finished early (mission complete): close the bar at 100 %
     bar.close()
-    return tracker.result(rel_s, rel_pos, clock() - wall0, t, vehicle_steps, transport.stats())
+    return [r.result for r in runs]
 
 
 def _phase_summary(phase: np.ndarray) -> str:

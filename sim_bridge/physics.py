@@ -16,7 +16,7 @@ from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT
 from companion.control import geometric, pid, so3
-from companion.control.geometric import pack_control_params, pack_setpoint
+from companion.control.geometric import N_SP, pack_control_params, pack_setpoint
 from companion.params import GRAVITY_MPS2, InnerLoopConfig, VehicleParams
 from companion.state import FleetSetpoint, FleetState
 from sim_bridge.dynamics import allocate, motor_coeffs, pack_vehicle_params, rigid_body_step
@@ -208,7 +208,7 @@ class Physics:
             return block
         return self.wind_field.advance(n_steps)
 
-    def step(self, state: FleetState, setpoint: FleetSetpoint, n_steps: int = 1,
+    def step(self, state: FleetState, setpoint: FleetSetpoint | np.ndarray, n_steps: int = 1,
              active: np.ndarray | None = None, rotor_scale: np.ndarray | None = None) -> None:
         """Advance every active vehicle n_steps physics steps in place; controller (geometric
         or PID per inner.controller) runs every physics step on the held setpoint. Inactive
@@ -216,7 +216,9 @@ class Physics:
 
         Args:
             state: FleetState (N), modified in place.
-            setpoint: FleetSetpoint (N), held for the n_steps.
+            setpoint: FleetSetpoint (N), held for the n_steps; or the same already packed
+                by geometric.pack_setpoint, (N, N_SP) float64 (a caller that steps several
+                groups packs once and hands each its rows).
             active: (N,) bool mask, default all.
             rotor_scale: (N, 4) factor on each rotor's speed command (1 healthy, 0 a failed
                 rotor: sim_bridge.faults.RotorFaults.scale); default all 1.
@@ -224,8 +226,14 @@ class Physics:
             ValueError: on size mismatch or negative n_steps.
         """
         n = state.n
-        if setpoint.n != n:
-            raise ValueError(f"setpoint N={setpoint.n} != state N={n}")
+        if isinstance(setpoint, np.ndarray):
+            packed = np.ascontiguousarray(setpoint, np.float64)
+            if packed.shape != (n, N_SP):
+                raise ValueError(f"packed setpoint has shape {packed.shape}, not ({n}, {N_SP})")
+        else:
+            if setpoint.n != n:
+                raise ValueError(f"setpoint N={setpoint.n} != state N={n}")
+            packed = pack_setpoint(setpoint)
         if n_steps < 0:
             raise ValueError("n_steps must be >= 0")
         act = np.ones(n, np.bool_) if active is None else np.ascontiguousarray(active, np.bool_)
@@ -245,7 +253,7 @@ class Physics:
             if not (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous):
                 a = np.ascontiguousarray(a, np.float64)
             arrays.append(a)
-        _physics_loop(int(n_steps), act, *arrays, pack_setpoint(setpoint), self._cprm, self._vprm, self.dt_s,
+        _physics_loop(int(n_steps), act, *arrays, packed, self._cprm, self._vprm, self.dt_s,
                       self._ctrl, self._mot, self._wind_sequence(int(n_steps)), self.ground_z_m,
                       np.ascontiguousarray(rotor_scale, np.float64))
         for name, a in zip(_FIELDS, arrays):

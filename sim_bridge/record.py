@@ -23,8 +23,12 @@ from companion import frames
 from companion.agent import Phase
 from companion.mission import Mission
 from companion.state import FleetSetpoint, FleetState
+from sim_bridge.jit import compiled
 from sim_bridge.results import LinkStats
 from sim_bridge.scenario import ScenarioConfig
+
+_HOVER = int(Phase.HOVER)
+_rot_to_quat = compiled(frames.rot_to_quat_rows)
 
 
 @dataclass
@@ -158,6 +162,7 @@ class Recorder:
     phase: list = field(default_factory=list)
     counted: list = field(default_factory=list)
     """Per sample and vehicle: its agent was alive (the fleet leaves out crashed companions)."""
+    _all_counted: np.ndarray = field(default_factory=lambda: np.ones(0, bool), repr=False)
 
     def add(self, t_s: float, st: FleetState, sp: FleetSetpoint, slot: np.ndarray, phase: np.ndarray,
             counted: np.ndarray | None = None) -> None:
@@ -170,11 +175,18 @@ class Recorder:
         self.acc_cmd_ned_mps2.append(sp.acc_ned_mps2.astype(np.float32))
         self.slot_ned_m.append(slot.astype(np.float32))
         self.phase.append(phase.astype(np.int8))
-        self.counted.append(np.ones(len(phase), bool) if counted is None else np.asarray(counted, bool))
+        if counted is None:  # one shared all-true row (arrays() stacks copies of the rows)
+            if len(self._all_counted) != len(phase):
+                self._all_counted = np.ones(len(phase), bool)
+            counted = self._all_counted
+        self.counted.append(np.asarray(counted, bool))
 
     def arrays(self) -> dict[str, np.ndarray]:
-        out = {k: np.asarray(v) for k, v in self.__dict__.items() if k != "rot_body_to_ned"}
-        out["att_q_wxyz"] = frames.rot_to_quat_wxyz(np.asarray(self.rot_body_to_ned)).astype(np.float32)
+        out = {k: np.asarray(v) for k, v in self.__dict__.items() if k not in ("rot_body_to_ned", "_all_counted")}
+        rot = np.asarray(self.rot_body_to_ned).reshape(-1, 3, 3)
+        q = np.empty((len(rot), 4))
+        _rot_to_quat(rot, q)  # the compiled twin of frames.rot_to_quat_wxyz
+        out["att_q_wxyz"] = q.reshape(len(self.t_s), -1, 4).astype(np.float32)
         return out
 
 
@@ -225,6 +237,8 @@ class MissionTracker:
         self.t_go_s = math.nan
         self.t_go_spread_s = math.nan
         self.updates = 0
+        self._all_ids = np.arange(n)
+        self._slot_tau, self._slot = math.nan, np.zeros((n, 3))
 
     def update(self, t_s: float, state: FleetState, inner_sp: FleetSetpoint, released: np.ndarray,
                phase: np.ndarray, assembled: np.ndarray, t_go_s: np.ndarray,
@@ -242,27 +256,37 @@ class MissionTracker:
             healthy = ~(self.failed_at_s <= t_s)
             if not healthy.all():
                 counted = healthy if counted is None else (np.asarray(counted, bool) & healthy)
-        for v in np.flatnonzero(phase != self.phase):
-            self.phase_entry[v, phase[v]] = t_s
-        self.phase = np.array(phase, dtype=np.int8)
+        changed = phase != self.phase
+        if changed.any():
+            for v in np.flatnonzero(changed):
+                self.phase_entry[v, phase[v]] = t_s
+            self.phase = np.array(phase, dtype=np.int8)
         c = slice(None) if counted is None else np.asarray(counted, bool)
         if math.isnan(self.t_all_assembled) and np.all(assembled[c]):
             self.t_all_assembled = t_s
         go = np.asarray(t_go_s, float)
-        go = go[np.isfinite(go)]
-        if len(go):
-            self.t_go_s, self.t_go_spread_s = float(go.min()), float(np.ptp(go))
+        lo = float(np.fmin.reduce(go)) if len(go) else math.nan  # NaN = none held
+        if lo == lo:
+            self.t_go_s, self.t_go_spread_s = lo, float(np.fmax.reduce(go)) - lo
         m = self.mission
-        slot = m.slot_ned_m(m.tau_s(t_s, self.t_go_s))
-        airborne = np.flatnonzero(released)
-        self.safety.update(t_s, airborne, state.pos_ned_m[airborne], m,
-                           None if healthy is None else healthy[airborne])
-        if self.updates % self.log_every == 0:
-            self.rec.add(t_s, state, inner_sp, slot, self.phase, counted)
-        self.updates += 1
-        if math.isnan(self.t_complete) and np.all(self.phase[c] == Phase.HOVER):
-            if np.linalg.norm(state.pos_ned_m[c] - slot[c], axis=1).max() < self.cfg.completion_tol_m:
+        if released.all():  # (every tick after the last launch: no index copies)
+            self.safety.update(t_s, self._all_ids, state.pos_ned_m, m, healthy)
+        else:
+            airborne = np.flatnonzero(released)
+            self.safety.update(t_s, airborne, state.pos_ned_m[airborne], m,
+                               None if healthy is None else healthy[airborne])
+        log = self.updates % self.log_every == 0
+        judge = math.isnan(self.t_complete) and bool((self.phase[c] == _HOVER).all())
+        if log or judge:  # the slots are only needed for these
+            tau = m.tau_s(t_s, self.t_go_s)
+            if tau != self._slot_tau:  # (unchanged while the transit start is not agreed)
+                self._slot, self._slot_tau = m.slot_ned_m(tau), tau
+            slot = self._slot
+            if log:
+                self.rec.add(t_s, state, inner_sp, slot, self.phase, counted)
+            if judge and np.linalg.norm(state.pos_ned_m[c] - slot[c], axis=1).max() < self.cfg.completion_tol_m:
                 self.t_complete = t_s
+        self.updates += 1
         return not math.isnan(self.t_complete) and t_s >= self.t_complete + self.cfg.completion_hold_s
 
     def result(self, release_s: np.ndarray, release_pos_ned_m: np.ndarray, wall_s: float, sim_s: float,

@@ -222,9 +222,9 @@ def consensus_accel(
     out = np.empty((len(rows), 3))
     usable = np.broadcast_to(np.ones(n, dtype=bool), (len(rows), n))
     bad = consensus_rows(pos[rows], vel[rows], rows, np.broadcast_to(pos, (len(rows), n, 3)),
-                         np.broadcast_to(vel, (len(rows), n, 3)), usable, np.asarray(h_pos_ned_m, float),
-                         np.asarray(h_vel_ned_mps, float), np.asarray(h_acc_ned_mps2, float), W,
-                         _topo.neighbour_table(W), gains_vector(gains), math.inf, out)
+                         np.broadcast_to(vel, (len(rows), n, 3)), usable, np.asarray(h_pos_ned_m, float)[None],
+                         np.asarray(h_vel_ned_mps, float)[None], np.asarray(h_acc_ned_mps2, float)[None],
+                         np.zeros(len(rows), np.int64), W, _topo.neighbour_table(W), gains_vector(gains), math.inf, out)
     if bad >= 0:
         who = rows.tolist() if len(rows) <= 10 else "..."
         raise ValueError(f"non-finite state or reference for vehicle(s) [{bad}] read by vehicle(s) {who}")
@@ -239,7 +239,7 @@ def gains_vector(gains: ConsensusGains) -> np.ndarray:
 
 
 @kernel
-def consensus_rows(own_pos, own_vel, ids, nb_pos, nb_vel, usable, h_pos, h_vel, h_acc, W, nbr, k, err_max,
+def consensus_rows(own_pos, own_vel, ids, nb_pos, nb_vel, usable, h_pos, h_vel, h_acc, h_sel, W, nbr, k, err_max,
                    out) -> int:
     """eq. 27 (+ h'') for the vehicles ids[r], each with its own view of its neighbours.
 
@@ -252,41 +252,52 @@ def consensus_rows(own_pos, own_vel, ids, nb_pos, nb_vel, usable, h_pos, h_vel, 
         nb_pos, nb_vel: (R, N, 3) every vehicle's state as row r knows it.
         usable: (R, N) bool, vehicle j may enter row r's sum (heard, fresh,
             flying in formation); a neighbour that is not usable has weight 0.
-        h_pos, h_vel, h_acc: (N, 3) slot references; W: (N, N) weights;
+        h_pos, h_vel, h_acc: (G, N, 3) slot references, G alternatives (vehicles that
+            hold different transit starts fly different references); h_sel: (R,) which
+            one row r flies; W: (N, N) weights;
         nbr: (N, K) who each vehicle hears (topology.neighbour_table; -1 padded), so the
             loop costs the in-degree, not N;
         k: (6,) gains (gains_vector); err_max: slot-position errors longer than
             this (m) are shortened to it before the law (math.inf = eq. 27 exactly).
-        out: (R, 3) written.
+        out: (R, 3) written; NaN in a row that read a non-finite value.
     Returns:
         -1, or the index of the first vehicle read whose state or reference is not
-        finite (its row of out is then undefined). A self-loop w_ii adds 0 and is
-        skipped.
+        finite (the rows that read one are NaN; the others are computed). A self-loop
+        w_ii adds 0 and is skipped.
     """
+    first_bad = -1
     for r in range(ids.shape[0]):
-        i = ids[r]
-        e0, e1, e2 = own_pos[r, 0] - h_pos[i, 0], own_pos[r, 1] - h_pos[i, 1], own_pos[r, 2] - h_pos[i, 2]
-        f0, f1, f2 = own_vel[r, 0] - h_vel[i, 0], own_vel[r, 1] - h_vel[i, 1], own_vel[r, 2] - h_vel[i, 2]
+        i, g = ids[r], h_sel[r]
+        e0, e1, e2 = own_pos[r, 0] - h_pos[g, i, 0], own_pos[r, 1] - h_pos[g, i, 1], own_pos[r, 2] - h_pos[g, i, 2]
+        f0, f1, f2 = own_vel[r, 0] - h_vel[g, i, 0], own_vel[r, 1] - h_vel[g, i, 1], own_vel[r, 2] - h_vel[g, i, 2]
         en = math.sqrt(e0 * e0 + e1 * e1 + e2 * e2)
-        if not (math.isfinite(en) and math.isfinite(f0 + f1 + f2) and math.isfinite(h_acc[i, 0] + h_acc[i, 1]
-                                                                                   + h_acc[i, 2])):
-            return i
+        bad = -1
+        if not (math.isfinite(en) and math.isfinite(f0 + f1 + f2) and math.isfinite(h_acc[g, i, 0] + h_acc[g, i, 1]
+                                                                                   + h_acc[g, i, 2])):
+            bad = i
         if en > err_max:
             s = err_max / en
             e0, e1, e2 = e0 * s, e1 * s, e2 * s
         c0 = c1 = c2 = c3 = c4 = c5 = 0.0
         for m in range(nbr.shape[1]):
+            if bad >= 0:
+                break
             j = nbr[i, m]
             if j < 0:
                 break
             w = W[i, j]
             if w == 0.0 or j == i or not usable[r, j]:
                 continue
-            g0, g1, g2 = nb_pos[r, j, 0] - h_pos[j, 0], nb_pos[r, j, 1] - h_pos[j, 1], nb_pos[r, j, 2] - h_pos[j, 2]
-            v0, v1, v2 = nb_vel[r, j, 0] - h_vel[j, 0], nb_vel[r, j, 1] - h_vel[j, 1], nb_vel[r, j, 2] - h_vel[j, 2]
+            g0 = nb_pos[r, j, 0] - h_pos[g, j, 0]
+            g1 = nb_pos[r, j, 1] - h_pos[g, j, 1]
+            g2 = nb_pos[r, j, 2] - h_pos[g, j, 2]
+            v0 = nb_vel[r, j, 0] - h_vel[g, j, 0]
+            v1 = nb_vel[r, j, 1] - h_vel[g, j, 1]
+            v2 = nb_vel[r, j, 2] - h_vel[g, j, 2]
             gn = math.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
             if not (math.isfinite(gn) and math.isfinite(v0 + v1 + v2)):
-                return j
+                bad = j
+                break
             if gn > err_max:
                 s = err_max / gn
                 g0, g1, g2 = g0 * s, g1 * s, g2 * s
@@ -296,14 +307,19 @@ def consensus_rows(own_pos, own_vel, ids, nb_pos, nb_vel, usable, h_pos, h_vel, 
             c3 += w * (v0 - f0)
             c4 += w * (v1 - f1)
             c5 += w * (v2 - f2)
+        if bad >= 0:
+            out[r, 0], out[r, 1], out[r, 2] = math.nan, math.nan, math.nan
+            if first_bad < 0:
+                first_bad = bad
+            continue
         # K = [k_pos I3, k_vel I3], so K x = k_pos p + k_vel v.
         out[r, 0] = k[0] * own_pos[r, 0] + k[1] * own_vel[r, 0] + k[2] * e0 + k[3] * f0 + k[4] * c0 + k[5] * c3 \
-            + h_acc[i, 0]
+            + h_acc[g, i, 0]
         out[r, 1] = k[0] * own_pos[r, 1] + k[1] * own_vel[r, 1] + k[2] * e1 + k[3] * f1 + k[4] * c1 + k[5] * c4 \
-            + h_acc[i, 1]
+            + h_acc[g, i, 1]
         out[r, 2] = k[0] * own_pos[r, 2] + k[1] * own_vel[r, 2] + k[2] * e2 + k[3] * f2 + k[4] * c2 + k[5] * c5 \
-            + h_acc[i, 2]
-    return -1
+            + h_acc[g, i, 2]
+    return first_bad
 
 
 def _mode_blocks(gains: ConsensusGains) -> tuple[np.ndarray, np.ndarray]:

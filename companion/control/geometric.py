@@ -35,6 +35,8 @@ N_CP = 16
 # ---- packed setpoint row layout (N, N_SP), built by pack_setpoint
 SP_POS, SP_VEL, SP_ACC, SP_YAW, SP_YAWRATE, SP_Q, SP_THRUST, SP_RATE = 0, 3, 6, 9, 10, 11, 15, 16
 N_SP = 19
+_SP_FIELDS = ("vel_ned_mps", "acc_ned_mps2", "yaw_rad", "yaw_rate_radps", "att_q_wxyz", "thrust_norm",
+              "body_rate_radps")
 
 MIN_VERTICAL_THRUST_FRAC = 0.05
 """Lowest upward thrust component kept, as a fraction of weight: commands that ask for
@@ -69,6 +71,10 @@ def pack_setpoint(sp: FleetSetpoint) -> np.ndarray:
     Raises:
         ValueError: if the setpoint arrays do not share the first axis N.
     """
+    block = sp.pos_ned_m.base
+    if block is not None and block.shape == (sp.pos_ned_m.shape[0], N_SP) and block.dtype == np.float64 \
+            and block.flags.c_contiguous and all(getattr(sp, f).base is block for f in _SP_FIELDS):
+        return block  # made by FleetSetpoint.empty: its block has this layout already
     cols = [sp.pos_ned_m, sp.vel_ned_mps, sp.acc_ned_mps2, sp.yaw_rad[:, None], sp.yaw_rate_radps[:, None],
             sp.att_q_wxyz, sp.thrust_norm[:, None], sp.body_rate_radps]
     n = sp.pos_ned_m.shape[0]
