@@ -68,25 +68,31 @@ class SweepRun:
         return self.ok and self.mission_completed and self.collisions == 0
 
 
-def run_one(config_path: str, seed: int) -> SweepRun:
-    """Fly the scenario headless with this seed (no launch study, no figures). Never raises:
-    an exception becomes a failed SweepRun with its traceback."""
-    t0 = time.perf_counter()
-    try:
-        from sim_bridge.headless import run_scenario
-        from sim_bridge.metrics import compute_metrics
-        from sim_bridge.simulate import load_scenario
+MAX_BATCH = 10
+"""Most seeds flown side by side in one process (headless.run_batch). The per-tick
+Python cost is shared and the logs of a batch fit easily in memory (about 60 MB a run
+of paper_40)."""
 
-        cfg = load_scenario(config_path, seed)
-        cfg = dataclasses.replace(cfg, launch_study=dataclasses.replace(cfg.launch_study, enabled=False))
-        m = compute_metrics(run_scenario(cfg, progress=False), None)
-    except Exception as err:  # kept, not lost: the sweep reports it with the seed
-        return SweepRun(seed, False, time.perf_counter() - t0, reason=f"{type(err).__name__}: {err}",
-                        trace=traceback.format_exc())
+
+def _sweep_cfg(config_path: str, seed: int):
+    """The scenario with this seed, without the launch study (a sweep scores the mission)."""
+    from sim_bridge.simulate import load_scenario
+
+    cfg = load_scenario(config_path, seed)
+    return dataclasses.replace(cfg, launch_study=dataclasses.replace(cfg.launch_study, enabled=False))
+
+
+def _crashed(seed: int, wall_s: float, err: BaseException) -> SweepRun:
+    return SweepRun(seed, False, wall_s, reason=f"{type(err).__name__}: {err}",
+                    trace="".join(traceback.format_exception(err)))
+
+
+def _scored(seed: int, wall_s: float, m) -> SweepRun:
+    """A SweepRun from one run's metrics (sim_bridge.results.Metrics)."""
     st = m.stabilisation
     lat = [f.detection_latency_s for f in m.rotor_failures if f.detection_latency_s is not None]
     return SweepRun(
-        seed, True, time.perf_counter() - t0, passed=m.passed, mission_completed=m.mission.completed,
+        seed, True, wall_s, passed=m.passed, mission_completed=m.mission.completed,
         all_stabilised=st.all_stabilised, completion_time_s=m.mission.completion_time_s,
         min_separation_m=m.separation.min_pair_distance_m,
         pairs_below_safety_distance=m.separation.pairs_below_safety_distance,
@@ -99,13 +105,73 @@ def run_one(config_path: str, seed: int) -> SweepRun:
     )
 
 
-def _in_process(config_path: str, seeds: list[int]) -> Iterator[SweepRun]:
-    for s in seeds:
-        yield run_one(config_path, s)
+def run_one(config_path: str, seed: int) -> SweepRun:
+    """Fly the scenario headless with this seed (no launch study, no figures). Never raises:
+    an exception becomes a failed SweepRun with its traceback."""
+    t0 = time.perf_counter()
+    try:
+        from sim_bridge.headless import run_scenario
+        from sim_bridge.metrics import compute_metrics
+
+        m = compute_metrics(run_scenario(_sweep_cfg(config_path, seed), progress=False), None)
+    except Exception as err:  # kept, not lost: the sweep reports it with the seed
+        return _crashed(seed, time.perf_counter() - t0, err)
+    return _scored(seed, time.perf_counter() - t0, m)
+
+
+def run_seeds(config_path: str, seeds: list[int]) -> list[SweepRun]:
+    """Fly these seeds side by side in this process (headless.run_batch: each run's result
+    is the one `run_one` gives, to the last bit) and score each. Each run's wall_s is the
+    batch's wall time divided by its size. Never raises: if the batch raises, every seed
+    is flown alone, so that the run that raised keeps its own reason and trace and the
+    others are not lost."""
+    t0 = time.perf_counter()
+    try:
+        from sim_bridge.headless import run_batch
+        from sim_bridge.metrics import compute_metrics
+
+        results = run_batch([_sweep_cfg(config_path, s) for s in seeds], progress=False)
+    except Exception:
+        return [run_one(config_path, s) for s in seeds]
+    scored: list[tuple[int, object]] = []
+    for seed, res in zip(seeds, results):
+        try:
+            scored.append((seed, compute_metrics(res, None)))
+        except Exception as err:  # kept with its seed
+            scored.append((seed, err))
+    wall = (time.perf_counter() - t0) / len(seeds)
+    return [_crashed(seed, wall, m) if isinstance(m, BaseException) else _scored(seed, wall, m) for seed, m in scored]
+
+
+def plan_batches(seeds: list[int], workers: int, max_batch: int = MAX_BATCH) -> list[list[int]]:
+    """Split seeds into batches of at most max_batch, their count a multiple of workers
+    (so that every worker gets as many), sizes differing by at most one.
+
+    Raises:
+        ValueError: workers or max_batch below 1.
+    """
+    if workers < 1 or max_batch < 1:
+        raise ValueError("workers and max_batch must be at least 1")
+    if not seeds:
+        return []
+    n_batches = workers * math.ceil(len(seeds) / (workers * max_batch))
+    n_batches = min(n_batches, len(seeds))
+    size, extra = divmod(len(seeds), n_batches)
+    out, i = [], 0
+    for b in range(n_batches):
+        k = size + (1 if b < extra else 0)
+        out.append(seeds[i:i + k])
+        i += k
+    return out
+
+
+def _in_process(config_path: str, seeds: list[int], max_batch: int) -> Iterator[list[SweepRun]]:
+    for batch in plan_batches(seeds, 1, max_batch):
+        yield run_seeds(config_path, batch)
 
 
 def _on_dask(config_path: str, seeds: list[int], workers: int, address: str | None,
-             warn: Callable[[str], None]) -> Iterator[SweepRun]:
+             warn: Callable[[str], None], max_batch: int) -> Iterator[list[SweepRun]]:
     try:
         import dask
         from distributed import Client, LocalCluster, as_completed
@@ -130,7 +196,9 @@ def _on_dask(config_path: str, seeds: list[int], workers: int, address: str | No
             warn(f"{len(trimmed)} worker(s) of {address} run with {TRIM_VAR}={next(iter(trimmed.values()))}, "
                  f"which slows this work; start them with `env -u {TRIM_VAR}`")
     try:
-        futures = client.map(run_one, [config_path] * len(seeds), seeds, pure=False)
+        n_workers = len(client.scheduler_info().get("workers", {})) or workers
+        batches = plan_batches(seeds, n_workers, max_batch)
+        futures = client.map(run_seeds, [config_path] * len(batches), batches, pure=False)
         for fut in as_completed(futures):
             yield fut.result()
     finally:
@@ -140,8 +208,10 @@ def _on_dask(config_path: str, seeds: list[int], workers: int, address: str | No
 
 
 def run_sweep(config_path: str | Path, seeds: list[int], workers: int = 1, address: str | None = None,
-              progress: bool = True, warn: Callable[[str], None] = print) -> list[SweepRun]:
-    """Fly every seed; returns the runs in seed order.
+              progress: bool = True, warn: Callable[[str], None] = print,
+              max_batch: int = MAX_BATCH) -> list[SweepRun]:
+    """Fly every seed, up to max_batch side by side per task (plan_batches); returns the
+    runs in seed order.
 
     Raises:
         SweepError: Dask missing for workers > 1 or an address, or the cluster does not answer.
@@ -153,12 +223,15 @@ def run_sweep(config_path: str | Path, seeds: list[int], workers: int = 1, addre
 
     path = str(Path(config_path).resolve())
     load_scenario(path)  # a bad config fails once, here, with its path and reason
-    it = _in_process(path, seeds) if workers <= 1 and address is None else _on_dask(path, seeds, workers, address, warn)
-    runs = []
+    if max_batch < 1:
+        raise ValueError("--batch must be at least 1")
+    it = _in_process(path, seeds, max_batch) if workers <= 1 and address is None \
+        else _on_dask(path, seeds, workers, address, warn, max_batch)
+    runs: list[SweepRun] = []
     with tqdm(total=len(seeds), unit="run", disable=not progress, desc="sweep") as bar:
-        for r in it:
-            runs.append(r)
-            bar.update(1)
+        for batch in it:
+            runs += batch
+            bar.update(len(batch))
             bad = sum(not x.ok or not x.passed for x in runs)
             bar.set_postfix_str(f"failed {bad}" if bad else "all passed", refresh=False)
     return sorted(runs, key=lambda r: r.seed)

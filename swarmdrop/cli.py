@@ -76,7 +76,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
         seeds = list(range(first, first + args.seeds))
         out = Path(args.out) if args.out else Path("runs") / f"{stem}_sweep"
         runs = run_sweep(args.config, seeds, workers=args.workers, address=args.address, progress=not args.quiet,
-                         warn=lambda m: print(f"warning: {m}", file=sys.stderr))
+                         warn=lambda m: print(f"warning: {m}", file=sys.stderr), max_batch=args.batch)
     except (ConfigError, SweepError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
@@ -119,6 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--no-figures", action="store_true")
     r.add_argument("--check", action="store_true", help="exit 1 if any acceptance check fails")
     r.set_defaults(func=_cmd_run)
+    from sim_bridge.sweep import MAX_BATCH  # (the module imports nothing heavy at load)
+
     w = sub.add_parser("sweep", help="Monte Carlo over seeds, headless, on Dask (or in-process with --workers 1)")
     w.add_argument("config", help="scenario YAML, e.g. configs/paper_40.yaml")
     w.add_argument("--seeds", type=int, default=10, help="number of seeds (from the config's seed, or --first-seed)")
@@ -126,6 +128,9 @@ def build_parser() -> argparse.ArgumentParser:
     w.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                    help="local Dask worker processes (default: one per core; 1 = in-process, no Dask needed)")
     w.add_argument("--address", default=None, help="an existing Dask scheduler, e.g. tcp://10.0.0.5:8786")
+    w.add_argument("--batch", type=int, default=MAX_BATCH, metavar="B",
+                   help=f"at most B seeds flown side by side per task (default {MAX_BATCH}; the same results, "
+                        "less time per run; 1 = one run per task)")
     w.add_argument("--rerun", type=int, default=None, metavar="SEED",
                    help="replay one seed in-process, writing its full run directory and figures")
     w.add_argument("--out", help="results directory (default runs/<config name>_sweep)")
