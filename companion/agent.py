@@ -260,14 +260,12 @@ class Agent:
         self._k = gains_vector(cfg.consensus)
         self._cos_tilt_max = math.cos(math.radians(cfg.phases.stable_tilt_deg))
         self._cos_lost = math.cos(math.radians(cfg.phases.lost_tilt_deg))
-        self._zeros = np.zeros(0, np.int64)
         k = self._n_obstacles = len(mission.obstacle_radii_m)
         # Static obstacles as zero-length capsules, one copy per own row (read-only views).
         self._obs_ends = np.broadcast_to(mission.obstacle_centres_ned_m, (n, k, 3))
         self._obs_r = np.broadcast_to(mission.obstacle_radii_m, (n, k))
         self._obs_use = np.broadcast_to(True, (n, k))
         self._no_rows = np.empty((0, 3))
-        self._buffers: tuple[np.ndarray, ...] | None = None
 
     # ------------------------------------------------------------------ phases
     def _advance_phases(self, t_s: float, own: OwnState, valid: np.ndarray, cos_tilt: np.ndarray) -> None:
@@ -340,7 +338,8 @@ class Agent:
         ids = self.ids[rows]
         p, v = own.pos_ned_m[rows], own.vel_ned_mps[rows]
         n_veh = view.n_vehicles
-        pred, usable, repel, ghost = self._neighbour_buffers(n_rows, n_veh)
+        pred = np.empty((n_rows, n_veh, 3))
+        usable, repel, ghost = (np.empty((n_rows, n_veh), np.bool_) for _ in range(3))
         kern.neighbour_sets_rows(rows, ids, p, view.pos_ned_m, view.vel_ned_mps, view.flags, view.phase, age,
                                  sw.stale_after_s, IN_FORMATION, min(a.sensing_radius_m, a.vehicle_influence_m),
                                  pred, usable, repel, ghost)
@@ -365,16 +364,6 @@ class Agent:
         kern.clip_sum_rows(u1, u2, cfg.consensus_accel_max_mps2, cfg.total_accel_max_mps2, acc)
         return acc, h_pos_rows, h_vel_rows
 
-    def _neighbour_buffers(self, n_rows: int, n_veh: int) -> tuple[np.ndarray, ...]:
-        """pred (R, N, 3) and usable, repel, ghost (R, N) bool for this tick, reused from the
-        last tick when R is the same: neighbour_sets_rows writes every element, and a fresh
-        (R, N, 3) array per tick costs page faults once R N is large (the headless batch)."""
-        buf = self._buffers
-        if buf is None or buf[0].shape[:2] != (n_rows, n_veh):
-            buf = self._buffers = (np.empty((n_rows, n_veh, 3)),) + tuple(
-                np.empty((n_rows, n_veh), np.bool_) for _ in range(3))
-        return buf
-
     def _consensus(self, t_s, go, p, v, ids, pred, vv, usable):
         """Eq. 27 for the rows, each on the reference of the transit start it holds
         (go (R,), NaN = none agreed yet: the assembly point). Rows holding different
@@ -384,8 +373,9 @@ class Agent:
         m = self.mission
         gl = go.tolist()  # Python's list beats numpy's per-call cost here
         g0 = gl[0]
-        if gl.count(g0) == len(gl) if g0 == g0 else all(x != x for x in gl):
-            groups, h_sel = [g0], self._zero_rows(len(gl))
+        one_ref = gl.count(g0) == len(gl) if g0 == g0 else all(x != x for x in gl)  # (NaN != NaN)
+        if one_ref:
+            groups, h_sel = [g0], np.zeros(len(gl), np.int64)
         else:
             keys, h_sel = np.unique(np.where(np.isnan(go), -np.inf, go), return_inverse=True)
             groups = [math.nan if g == -np.inf else g for g in keys.tolist()]
@@ -402,12 +392,6 @@ class Agent:
         if n_ref == 1:
             return out, h_pos[0, ids], h_vel[0, ids]
         return out, h_pos[h_sel, ids], h_vel[h_sel, ids]
-
-    def _zero_rows(self, n_rows: int) -> np.ndarray:
-        """(n_rows,) int64 zeros, kept between ticks."""
-        if len(self._zeros) != n_rows:
-            self._zeros = np.zeros(n_rows, np.int64)
-        return self._zeros
 
     def _ghost_columns(self, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where a silent vehicle can be: its autopilot brakes to Hold (PX4 offboard loss,

@@ -57,18 +57,16 @@ AP_DOCKED, AP_THROW, AP_HOLD, AP_OFFBOARD = 0, 1, 2, 3
 
 
 @njit(cache=True)
-def _all_commanded(pos, vel, acc):
-    """Every row commands something: a finite position, velocity or acceleration
+def _commanded(pos, vel, acc):
+    """(N,) bool: the row commands something, a finite position, velocity or acceleration
     component (an all-NaN row is the agent sending nothing)."""
+    out = np.zeros(pos.shape[0], np.bool_)
     for i in range(pos.shape[0]):
-        hit = False
         for a in range(3):
             if pos[i, a] == pos[i, a] or vel[i, a] == vel[i, a] or acc[i, a] == acc[i, a]:
-                hit = True
+                out[i] = True
                 break
-        if not hit:
-            return False
-    return True
+    return out
 
 
 @dataclass
@@ -105,10 +103,9 @@ class AutopilotModel:
     def setpoint(self, state: FleetState, agent_sp: FleetSetpoint) -> FleetSetpoint:
         """The inner-loop setpoint of every vehicle this tick (advances the mode machine).
         When every vehicle flies offboard this is agent_sp itself, not a copy."""
-        if self.all_offboard and _all_commanded(agent_sp.pos_ned_m, agent_sp.vel_ned_mps, agent_sp.acc_ned_mps2):
+        commanded = _commanded(agent_sp.pos_ned_m, agent_sp.vel_ned_mps, agent_sp.acc_ned_mps2)
+        if self.all_offboard and commanded.all():
             return agent_sp  # the usual case once the swarm flies
-        commanded = ~np.all(np.isnan(agent_sp.pos_ned_m) & np.isnan(agent_sp.vel_ned_mps)
-                            & np.isnan(agent_sp.acc_ned_mps2), axis=1)
         thr = self.mode == AP_THROW
         if thr.any():
             r = state.rot_body_to_ned[thr]
@@ -162,7 +159,7 @@ class _Run:
     single run has; only the agent and the autopilot model are shared, row by row."""
 
     def __init__(self, cfg: ScenarioConfig, mission: Mission, rows: slice, state: FleetState, view: SwarmView,
-                 transport: NeighbourTransport | None, log_every: int):
+                 released: np.ndarray, transport: NeighbourTransport | None, log_every: int):
         n = mission.n
         self.cfg, self.rows = cfg, rows
         self.rng = np.random.default_rng(cfg.seed)
@@ -176,7 +173,7 @@ class _Run:
         self.state = FleetState(*(getattr(state, f)[rows] for f in FleetState.__dataclass_fields__))
         self.view = SwarmView(*(getattr(view, f)[rows] for f in _VIEW_ARRAYS), receive_kernel=view.receive_kernel)
         self.tracker = MissionTracker(cfg, mission, log_every)
-        self.released = np.zeros(n, dtype=bool)
+        self.released = released[rows]
         self.rel_s = release_times_s(cfg.carrier, n)
         self.next_release = min(self.rel_s) if n else math.inf  # (a float compare per tick)
         self.n_released = 0
@@ -231,10 +228,10 @@ def run_batch(cfgs: list[ScenarioConfig], progress: bool = False, clock=None,
     sub_steps = int(round(cfg.physics.rate_hz / cfg.agent.rate_hz))
     log_every = int(round(cfg.agent.rate_hz / cfg.output.log_rate_hz))
     state = FleetState.zeros(n * n_runs)
-    runs = [_Run(c, mission, slice(k * n, (k + 1) * n), state, view, None if transports is None else transports[k],
-                 log_every) for k, c in enumerate(cfgs)]
-    to_quat, q_own = compiled(frames.rot_to_quat_rows), np.empty((n * n_runs, 4))  # 1 us, numpy's twin 100 us
     released = np.zeros(n * n_runs, dtype=bool)
+    runs = [_Run(c, mission, slice(k * n, (k + 1) * n), state, view, released,
+                 None if transports is None else transports[k], log_every) for k, c in enumerate(cfgs)]
+    to_quat, q_own = compiled(frames.rot_to_quat_rows), np.empty((n * n_runs, 4))  # 1 us, numpy's twin 100 us
     estimated = runs[0].estimator is not None  # (the same estimator config in every run)
     p_obs, v_obs, r_obs = np.empty((n * n_runs, 3)), np.empty((n * n_runs, 3)), np.empty((n * n_runs, 3, 3))
     wall0 = clock()
@@ -254,8 +251,7 @@ def run_batch(cfgs: list[ScenarioConfig], progress: bool = False, clock=None,
                 due = ~r.released & (r.rel_s <= t + 1e-9)
                 release_into(r.state, np.flatnonzero(due), r.cfg, t, r.rng)
                 autopilot.release(r.rows.start + np.flatnonzero(due), state)
-                r.released |= due
-                released[r.rows] = r.released
+                r.released |= due  # (a view: the batch's released too)
                 r.n_released = int(r.released.sum())
                 r.next_release = min(r.rel_s[~r.released], default=math.inf)
             if r.n_released < n:
