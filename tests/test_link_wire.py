@@ -183,8 +183,9 @@ def test_decode_of_encode_returns_the_field_values(codec):
 
 def test_swarmdrop_state_layout():
     cls = sd.MAVLink_swarmdrop_state_message
-    assert cls.unpacker.size == 59 <= 64
-    assert cls.unpacker.format == "<QQffffff4fBBB"
+    assert cls.unpacker.size == 63 <= 64  # 59 bytes, plus the plan_seq extension (MAVLink 2: CRC_EXTRA unchanged)
+    assert cls.unpacker.format == "<QQffffff4fBBBI"
+    assert cls.crc_extra == 132 and cls.fieldnames[-1] == "plan_seq"  # as before the extension
     assert (sd.SWARMDROP_STATE_FLAGS_ASSEMBLED, sd.SWARMDROP_STATE_FLAGS_OWN_STATE_VALID,
             sd.SWARMDROP_STATE_FLAGS_READY) == (1, 2, 4)
     assert sd.MAVLINK_MSG_ID_SWARMDROP_STATE == generate.SWARMDROP_STATE_ID
@@ -469,8 +470,8 @@ def test_project_ids_collide_with_nothing_in_all_xml():
 
 def test_copied_common_messages_equal_pymavlink_common():
     """Same CRC_EXTRA (enum attributes stripped: they do not enter it) and the same layout."""
-    assert set(sd.mavlink_map) == set(generate.COMMON_MESSAGES) | {generate.SWARMDROP_STATE_ID,
-                                                                   generate.SWARMDROP_TICK_ID}
+    assert set(sd.mavlink_map) == set(generate.COMMON_MESSAGES) | {
+        generate.SWARMDROP_STATE_ID, generate.SWARMDROP_TICK_ID, generate.SWARMDROP_PLAN_ID, generate.SWARMDROP_SLOTS_ID}
     for msgid, name in generate.COMMON_MESSAGES.items():
         ours, ref = sd.mavlink_map[msgid], common.mavlink_map[msgid]
         assert ours.msgname == ref.msgname == name

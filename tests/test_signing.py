@@ -24,8 +24,12 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 from companion.link.msgdef import swarmdrop  # noqa: E402
 from companion.link.signing import Signing, SigningError, TimestampStore, load_key, write_key  # noqa: E402
 from companion.link.wire import Codec  # noqa: E402
-from sim_bridge.sitl.config import SigningConfig, SitlConfig  # noqa: E402
-from sim_bridge.sitl.server import BackgroundSitl, SitlServer  # noqa: E402
+from sim_bridge.sitl.background import BackgroundSitl
+from sim_bridge.sitl.config import (
+    SigningConfig,  # noqa: E402
+    sitl_config,  # noqa: E402
+)
+from sim_bridge.sitl.server import SitlServer  # noqa: E402
 from sim_bridge.sitl.testing import MavClient, local_endpoints  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -163,8 +167,7 @@ def test_timestamps_survive_a_restart(tmp_path):
 # ---------------------------------------------------------------------------- the SITL
 def test_sitl_with_signing_required_ignores_unsigned_forged_and_replayed(key_file):
     key = load_key(key_file)
-    cfg = SitlConfig(vehicles=2, endpoints=local_endpoints(2), signing=SigningConfig(mode="require",
-                                                                                     key_file=str(key_file)))
+    cfg = sitl_config(2, endpoints=local_endpoints(2), signing=SigningConfig(mode="require", key_file=str(key_file)))
     bg = BackgroundSitl(cfg)
     server = bg.start()
     c = MavClient(cfg.endpoints.remote_base_port + 0)
@@ -201,7 +204,7 @@ def test_sitl_with_signing_required_ignores_unsigned_forged_and_replayed(key_fil
             assert time.monotonic() < deadline, sg
             time.sleep(0.02)  # polling a condition with a deadline
         assert not ap.armed and ap.mode == mode_before and server.params[0]["COM_OF_LOSS_T"] == 3.0
-        assert math.isnan(server.released_at_s[0]) and ap._offb is None
+        assert math.isnan(server.fleet.released_at_s[0]) and ap._offb is None
         # telemetry still goes to the signed client, not to whoever sent the last datagram
         c.drain()
         assert c.wait("HEARTBEAT", lambda m: m.get_srcSystem() == 1, 3) is not None
@@ -216,13 +219,13 @@ def test_sitl_with_signing_required_ignores_unsigned_forged_and_replayed(key_fil
 
 def test_setup_signing_only_over_a_trusted_link(key_file):
     """SETUP_SIGNING installs a key only when it arrives signed with the current key."""
-    server = SitlServer(SitlConfig(vehicles=1, signing=SigningConfig(mode="require", key_file=str(key_file))))
-    sg = server._signing(0)
+    server = SitlServer(sitl_config(1, signing=SigningConfig(mode="require", key_file=str(key_file))))
+    sg = server.links.signing.endpoint(0)
 
     class Ep:
         signing = sg
 
-        def queue(self, *a, **k):
+        def queue_fields(self, *a, **k):
             pass
 
     new_key = bytes(range(1, 33))

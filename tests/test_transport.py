@@ -4,7 +4,7 @@ import math
 import numpy as np
 
 from companion.swarm import FLAG_OWN_VALID, SwarmStates, SwarmView
-from sim_bridge.transport import LinkConfig, LossyTransport, RadioModel, hashed_uniform
+from sim_bridge.world.transport import LinkConfig, LossyTransport, RadioModel, hashed_uniform
 
 
 def _reference(cfg: LinkConfig, seed, sender, stamp_s, send_s, sender_pos, receiver_pos):

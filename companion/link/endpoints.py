@@ -8,11 +8,24 @@ out as messages (bad frames are counted and dropped, never raised), messages to
 send are data in the outbox until `flush()` packs and sends them. The agent and
 the SITL use the same classes.
 
-URLs (the MAVSDK forms, plus serial):
-    udpin://HOST:PORT      listen; answer whoever talked last (udp:// is the same)
+URLs (companion.link.urls has every accepted form, from MAVSDK, pymavlink and MAVROS):
+    udpin://HOST:PORT      listen; answer the peer (below)
     udpout://HOST:PORT     send there from an ephemeral port
     tcp://HOST:PORT        connect as a client
-    serial:///dev/ttyAMA0:921600   a UART (8N1, raw)
+    serial:///dev/ttyAMA0:921600   a UART (8N1, raw; 57600 baud if none is given)
+
+Who a listening UDP link answers (its reply address; docs/signing.md):
+    * signing off: the sender of the last frame that decoded (nothing can be verified;
+      as pymavlink and MAVProxy; unchanged from before signing existed).
+    * signing on (optional or require): only a TRUSTED frame moves it: signed, verified,
+      new to the vehicle's replay table, and for a vehicle the link serves
+      (companion.link.signing). An unsigned frame that is let through (RADIO_STATUS,
+      ADSB_VEHICLE, COLLISION under require; anything under optional) moves nothing; under
+      optional it may claim a link that nobody has claimed yet (first contact, as PX4),
+      so that unsigned clients still get answers.
+    * before any of that: the configured remote (the SITL's default destinations), or
+      nobody (udpin: frames are counted in no_peer_drops).
+Rejected frames (bad CRC, unknown, unsigned, forged, replayed) never move it.
 """
 from __future__ import annotations
 
@@ -20,12 +33,12 @@ import collections
 import errno
 import os
 import socket
-from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
-from companion.link.signing import Signing
+from companion.link.signing import TRUSTED, UNSIGNED, Signing
 from companion.link.tlog import Tlog
-from companion.link.wire import Codec, EncodeError, FrameError, FrameSplitter, UnknownMessage, split_datagram
+from companion.link.urls import EndpointError, LinkAddress, parse_url  # noqa: F401  (re-exported)
+from companion.link.wire import MAGIC_V2, Codec, EncodeError, FrameError, FrameSplitter, UnknownMessage, split_datagram
 
 MAX_DATAGRAMS_PER_RECV = 512
 """A recv() call returns after this many datagrams even if more are waiting, so a
@@ -33,52 +46,6 @@ flood on one link cannot starve the rest of the loop."""
 UDP_RCVBUF_BYTES = 1 << 20
 DATAGRAM_BYTES = 1400
 """Frames for one destination are packed into datagrams up to this size (under a typical MTU)."""
-
-_BAUDS = {9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 576000, 921600, 1000000, 1500000, 2000000}
-
-
-class EndpointError(ValueError):
-    """A link URL that cannot be used; the message says why."""
-
-
-@dataclass(frozen=True)
-class LinkAddress:
-    """A parsed link URL."""
-
-    scheme: str  # "udpin", "udpout", "tcp" or "serial"
-    host: str = ""
-    port: int = 0
-    device: str = ""
-    baud: int = 0
-
-    def __str__(self) -> str:
-        if self.scheme == "serial":
-            return f"serial://{self.device}:{self.baud}"
-        return f"{self.scheme}://{self.host}:{self.port}"
-
-
-def parse_url(url: str) -> LinkAddress:
-    """Parse a link URL (module docstring).
-
-    Raises:
-        EndpointError: unknown scheme, missing host or port, port or baud out of range.
-    """
-    scheme, sep, rest = url.partition("://")
-    if not sep:
-        raise EndpointError(f"{url!r}: expected scheme://..., e.g. udpin://0.0.0.0:14540")
-    scheme = {"udp": "udpin"}.get(scheme, scheme)
-    if scheme == "serial":
-        device, _, baud = rest.rpartition(":")
-        if not device or not baud.isdigit() or int(baud) not in _BAUDS:
-            raise EndpointError(f"{url!r}: expected serial:///dev/NAME:BAUD with BAUD one of {sorted(_BAUDS)}")
-        return LinkAddress("serial", device=device, baud=int(baud))
-    if scheme not in ("udpin", "udpout", "tcp"):
-        raise EndpointError(f"{url!r}: unknown scheme {scheme!r} (udpin, udpout, tcp, serial)")
-    host, _, port = rest.rpartition(":")
-    if not host or not port.isdigit() or not 0 < int(port) < 65536:
-        raise EndpointError(f"{url!r}: expected {scheme}://HOST:PORT with PORT in 1..65535")
-    return LinkAddress(scheme, host=host, port=int(port))
-
 
 class Link:
     """A non-blocking MAVLink byte pipe. Subclasses: UdpLink, StreamLink.
@@ -106,7 +73,11 @@ class Link:
         raise NotImplementedError
 
     def note_peer(self, addr: Any) -> None:
-        """A frame from addr was accepted (datagram links may answer there from now on)."""
+        """A trusted frame came from addr (datagram links may answer there from now on)."""
+
+    def note_first_contact(self, addr: Any) -> None:
+        """An accepted but unverified frame came from addr: a datagram link nobody has
+        claimed yet may answer there; a claimed one stays where it is."""
 
     def close(self) -> None:
         raise NotImplementedError
@@ -118,9 +89,10 @@ class UdpLink(Link):
     Args:
         bind: local (host, port) to listen on; port 0 = ephemeral.
         remote: where to send until someone talks to us (None: nowhere yet).
-        learn_remote: answer whoever sent the last datagram (udpin; PX4 does the same).
+        learn_remote: answer where trusted frames come from (udpin; the module docstring
+            says which frames are trusted).
     Raises:
-        OSError: the port cannot be bound.
+        OSError: the port cannot be bound (the message names host:port).
     """
 
     def __init__(self, bind: tuple[str, int] = ("127.0.0.1", 0), remote: tuple[str, int] | None = None,
@@ -131,10 +103,18 @@ class UdpLink(Link):
             self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, UDP_RCVBUF_BYTES)
         except OSError:  # a smaller buffer still works
             pass
-        self.sock.bind(bind)
+        try:
+            self.sock.bind(bind)
+        except (OSError, OverflowError, TypeError) as exc:  # in use, no such address, bad port
+            self.sock.close()
+            reason = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
+            raise OSError(getattr(exc, "errno", None) or errno.EINVAL,
+                          f"cannot listen on UDP {bind[0] or '0.0.0.0'}:{bind[1]}: {reason}") from None
         self.sock.setblocking(False)
         self.remote = remote
         self.learn_remote = learn_remote
+        self.claimed = False
+        """Someone has talked to us (first contact): only trusted frames move remote now."""
 
     @property
     def local_port(self) -> int:
@@ -161,11 +141,16 @@ class UdpLink(Link):
         return out
 
     def note_peer(self, addr: Any) -> None:
-        """A frame from addr was accepted (it decoded, and passed signing): with
-        learn_remote, answer there from now on. Only accepted frames move the peer, so junk
-        or an unsigned frame cannot redirect a vehicle's telemetry."""
+        """A trusted frame came from addr (it decoded and, with signing on, was signed,
+        verified and new to the vehicle): with learn_remote, answer there from now on."""
         if self.learn_remote and addr is not None:
             self.remote = addr
+            self.claimed = True
+
+    def note_first_contact(self, addr: Any) -> None:
+        if self.learn_remote and addr is not None and not self.claimed:
+            self.remote = addr
+            self.claimed = True
 
     def send(self, frame: bytes, addr: Any = None) -> bool:
         dest = addr or self.remote
@@ -252,27 +237,44 @@ def _open_serial(device: str, baud: int) -> int:
     return fd
 
 
-def open_link(url: str | LinkAddress, crc_extra: Callable[[int], int | None] | None = None) -> Link:
-    """Open a link from its URL (module docstring).
+def open_link(url: str | LinkAddress, crc_extra: Callable[[int], int | None] | None = None,
+              connect_timeout_s: float = 5.0) -> Link:
+    """Open a link from its URL (companion.link.urls).
 
+    Args:
+        connect_timeout_s: how long a TCP connect may take (a server that answers nothing).
     Raises:
-        EndpointError: bad URL. OSError: cannot bind, connect or open the device.
+        EndpointError: bad URL. OSError: cannot bind, connect or open the device; the
+            message names the URL (a serial port: the device and the baud rate apart), and
+            its errno is the OS's (ECONNREFUSED: no TCP server listens there yet).
     """
     a = parse_url(url) if isinstance(url, str) else url
-    if a.scheme == "udpin":
-        return UdpLink(bind=(a.host, a.port), remote=None, learn_remote=True)
-    if a.scheme == "udpout":
-        return UdpLink(bind=("0.0.0.0" if a.host not in ("127.0.0.1", "localhost") else "127.0.0.1", 0),
-                       remote=(a.host, a.port), learn_remote=False)
-    if a.scheme == "tcp":
-        sock = socket.create_connection((a.host, a.port), timeout=5.0)
+    if a.scheme == "serial":
+        import termios
+
+        try:
+            return StreamLink(_open_serial(a.device, a.baud), crc_extra)
+        except OSError as exc:
+            raise OSError(exc.errno or errno.EIO,
+                          f"serial device {a.device} (at {a.baud} baud): {exc.strerror or exc}") from None
+        except termios.error as exc:  # (an existing file that is not a terminal: /dev/null, a regular file)
+            code, text = (*exc.args, errno.ENOTTY, "not a terminal")[:2]
+            raise OSError(code if isinstance(code, int) else errno.ENOTTY,
+                          f"serial device {a.device} (at {a.baud} baud): not a serial port ({text})") from None
+    try:
+        if a.scheme == "udpin":
+            remote = (a.remote_host, a.remote_port) if a.remote_port else None
+            return UdpLink(bind=(a.host, a.port), remote=remote, learn_remote=True)
+        if a.scheme == "udpout":
+            return UdpLink(bind=("0.0.0.0" if a.host not in ("127.0.0.1", "localhost") else "127.0.0.1", 0),
+                           remote=(a.host, a.port), learn_remote=False)
+        sock = socket.create_connection((a.host, a.port), timeout=connect_timeout_s)
         sock.setblocking(False)
         sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
         return StreamLink(sock, crc_extra)
-    try:
-        return StreamLink(_open_serial(a.device, a.baud), crc_extra)
     except OSError as exc:
-        raise OSError(errno.ENODEV, f"{a.device}: {exc.strerror or exc}") from None
+        code = exc.errno or (errno.ETIMEDOUT if isinstance(exc, TimeoutError) else errno.EIO)
+        raise OSError(code, f"{url}: {exc.strerror or exc}") from None
 
 
 class MavEndpoint:
@@ -312,11 +314,15 @@ class MavEndpoint:
     def _drain(self, take: Callable[[bytes, Any], None]) -> None:
         """Pass every waiting frame and its source address to take, which decodes it and
         keeps the result; a frame take rejects is counted (unknown / bad) and dropped, a
-        kept one goes to the tlog. Never raises on bad input."""
+        kept one goes to the tlog. A kept frame moves the link's reply address only as the
+        module docstring says. Never raises on bad input."""
         n, tlog, sg, link, last_addr = 0, self.tlog, self.signing, self.link, None
+        verdict = TRUSTED
         for frame, addr in link.recv():
-            if sg is not None and not sg.check(frame):
-                continue  # unsigned / forged / replayed: counted in sg.counters
+            if sg is not None:
+                verdict = sg.verdict(frame)
+                if not verdict:
+                    continue  # unsigned / forged / replayed: counted in sg.counters
             try:
                 take(frame, addr)
             except UnknownMessage:
@@ -327,9 +333,14 @@ class MavEndpoint:
                 continue
             if tlog is not None:
                 tlog.write(frame)
-            if addr != last_addr:
+            if sg is None:  # nothing to verify: follow the last sender
+                if addr != last_addr:
+                    link.note_peer(addr)
+                    last_addr = addr
+            elif verdict == TRUSTED:
                 link.note_peer(addr)
-                last_addr = addr
+            elif verdict == UNSIGNED and sg.claims_unsigned:
+                link.note_first_contact(addr)
             n += 1
         self.received += n
 
@@ -346,7 +357,7 @@ class MavEndpoint:
         decode, decode_raw = self.codec.decode, self.codec.decode_raw
 
         def take(frame: bytes, _addr: Any) -> None:
-            msgid = frame[7] | frame[8] << 8 | frame[9] << 16 if frame[0] == 0xFD and len(frame) > 9 else -1
+            msgid = frame[7] | frame[8] << 8 | frame[9] << 16 if frame[0] == MAGIC_V2 and len(frame) > 9 else -1
             if msgid in raw_ids:
                 raw.append(decode_raw(frame))
             else:

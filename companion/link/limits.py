@@ -23,6 +23,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from companion.control.kernel import kernel
 from companion.link.setpoints import AttitudeSetpoint, Rejected, TrajectorySetpoint
 
 INVALID_SETPOINTS = "invalid setpoints"
@@ -75,67 +76,83 @@ def check_trajectory(sp: TrajectorySetpoint, lim: SetpointLimits) -> TrajectoryS
 def clamp_velocity(vx: float, vy: float, vz: float, lim: SetpointLimits) -> tuple[float, float, float]:
     """Velocity (m/s, NED) inside MPC_XY_VEL_MAX (horizontal norm) and MPC_Z_VEL_MAX_UP/DN;
     NaN axes stay NaN."""
+    return clamp_velocity3(vx, vy, vz, lim.xy_vel_max_mps, lim.z_vel_max_up_mps, lim.z_vel_max_dn_mps)
+
+
+@kernel
+def clamp_velocity3(vx, vy, vz, xy_max_mps, up_max_mps, dn_max_mps):
+    """clamp_velocity's kernel (scalars; the output stage's rows call it)."""
     h = math.hypot(vx, vy)
-    if h > lim.xy_vel_max_mps:  # False for NaN
-        vx, vy = vx * lim.xy_vel_max_mps / h, vy * lim.xy_vel_max_mps / h
+    if h > xy_max_mps:  # False for NaN
+        vx, vy = vx * xy_max_mps / h, vy * xy_max_mps / h
     if vz == vz:
-        vz = min(max(vz, -lim.z_vel_max_up_mps), lim.z_vel_max_dn_mps)
+        vz = min(max(vz, -up_max_mps), dn_max_mps)
     return vx, vy, vz
 
 
 def fence_trajectory(p: tuple, v: tuple, a: tuple, lo: tuple, hi: tuple, own: tuple) -> tuple[tuple, tuple, tuple]:
     """Keep a position-family setpoint inside the box lo..hi (m, mission NED): the position
     is clipped into it, and where the vehicle (own position) is at or beyond a face, velocity
-    and acceleration components pointing further out are zeroed. Scalars, for the agent's tick."""
-    pl, vl, al = list(p), list(v), list(a)
-    for i in range(3):
-        if pl[i] == pl[i]:
-            pl[i] = min(max(pl[i], lo[i]), hi[i])
-        if own[i] >= hi[i]:
-            vl[i] = min(vl[i], 0.0) if vl[i] == vl[i] else vl[i]
-            al[i] = min(al[i], 0.0) if al[i] == al[i] else al[i]
-        elif own[i] <= lo[i]:
-            vl[i] = max(vl[i], 0.0) if vl[i] == vl[i] else vl[i]
-            al[i] = max(al[i], 0.0) if al[i] == al[i] else al[i]
-    return tuple(pl), tuple(vl), tuple(al)
+    and acceleration components pointing further out are zeroed. Scalars (fence_axis per axis)."""
+    out = [fence_axis(p[i], v[i], a[i], lo[i], hi[i], own[i]) for i in range(3)]
+    return (out[0][0], out[1][0], out[2][0]), (out[0][1], out[1][1], out[2][1]), (out[0][2], out[1][2], out[2][2])
+
+
+@kernel
+def fence_axis(p, v, a, lo, hi, own):
+    """fence_trajectory on one axis: (p, v, a) kept inside lo..hi given the own coordinate
+    (NaN stays NaN: not commanded)."""
+    if p == p:
+        p = min(max(p, lo), hi)
+    if own >= hi:
+        v = min(v, 0.0) if v == v else v
+        a = min(a, 0.0) if a == a else a
+    elif own <= lo:
+        v = max(v, 0.0) if v == v else v
+        a = max(a, 0.0) if a == a else a
+    return p, v, a
 
 
 def clamp_tilt(q_wxyz: np.ndarray, tilt_max_rad: float) -> np.ndarray:
-    """The attitude q (w, x, y, z; NED -> body FRD) with its tilt limited to tilt_max_rad.
+    """The attitude q (w, x, y, z; NED -> body FRD) with its tilt limited to tilt_max_rad
+    (clamp_tilt_wxyz). Returns a new (4,) array."""
+    w, x, y, z = (float(c) for c in q_wxyz)
+    return np.array(clamp_tilt_wxyz(w, x, y, z, tilt_max_rad))
+
+
+@kernel
+def clamp_tilt_wxyz(w, x, y, z, tilt_max_rad):
+    """clamp_tilt as scalars (the output stage's rows call it).
 
     The tilt is the rotation taking NED down to body down; it is shortened about the same
-    axis, and the rest of the rotation (the heading) is kept.
+    axis, and the rest of the rotation (the heading) is kept. A quaternion within the
+    limit is returned as it is; a clamped one normalised with w >= 0.
     """
-    w, x, y, z = (float(c) for c in q_wxyz)
     # body z (down) in NED: third column of R(q); its down component is cos(tilt)
-    tilt = math.acos(min(1.0, max(-1.0, 1 - 2 * (x * x + y * y))))
-    if tilt <= tilt_max_rad:  # the usual case, on the agent's tick: no arrays
-        return np.asarray(q_wxyz, dtype=float)
-    bz = np.array([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)])
-    axis = np.cross([0.0, 0.0, 1.0], bz)
-    n = float(np.linalg.norm(axis))
-    axis = axis / n if n > 1e-9 else np.array([1.0, 0.0, 0.0])  # upside down: tilt about x
-    qt = _axis_angle(axis, tilt)
-    q_rest = _mul(_conj(qt), np.array([w, x, y, z]))  # the heading part: q = qt * q_rest
-    q = _mul(_axis_angle(axis, tilt_max_rad), q_rest)
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+    c = 1.0 - 2.0 * (x * x + y * y)
+    tilt = math.acos(min(1.0, max(-1.0, c)))
+    if tilt <= tilt_max_rad:  # the usual case
+        return w, x, y, z
+    bx, by = 2.0 * (x * z + w * y), 2.0 * (y * z - w * x)
+    # axis = e3 x b_z = (-by, bx, 0); upside down (no axis): tilt about x
+    n = math.hypot(bx, by)
+    ax, ay = (-by / n, bx / n) if n > 1e-9 else (1.0, 0.0)
+    s, co = math.sin(tilt / 2.0), math.cos(tilt / 2.0)
+    # q_rest = conj(qt) * q, qt = (co, ax s, ay s, 0): the heading part, q = qt * q_rest
+    rw, rx, ry, rz = _qmul(co, -ax * s, -ay * s, 0.0, w, x, y, z)
+    s, co = math.sin(tilt_max_rad / 2.0), math.cos(tilt_max_rad / 2.0)
+    qw, qx, qy, qz = _qmul(co, ax * s, ay * s, 0.0, rw, rx, ry, rz)
+    qn = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
+    if qw < 0.0:
+        qn = -qn
+    return qw / qn, qx / qn, qy / qn, qz / qn
 
 
-def _axis_angle(axis: np.ndarray, angle: float) -> np.ndarray:
-    s = math.sin(angle / 2.0)
-    return np.array([math.cos(angle / 2.0), axis[0] * s, axis[1] * s, axis[2] * s])
-
-
-def _conj(q: np.ndarray) -> np.ndarray:
-    return np.array([q[0], -q[1], -q[2], -q[3]])
-
-
-def _mul(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    w1, x1, y1, z1 = a
-    w2, x2, y2, z2 = b
-    return np.array([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
-                     w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2])
+@kernel
+def _qmul(w1, x1, y1, z1, w2, x2, y2, z2):
+    """Hamilton product of two quaternions given as scalars (w first)."""
+    return (w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
+            w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2)
 
 
 def check_attitude(sp: AttitudeSetpoint, lim: SetpointLimits, thrust_is_thrust: bool = True

@@ -19,10 +19,11 @@ handle_message_set_attitude_target (v1.14-v1.16):
   otherwise body rates if at least one rate is not ignored. Thrust is 0 when
   THROTTLE_IGNORE is set (PX4 leaves thrust_body zero).)
 
-ArduPilot's GUIDED rules differ in places (docs/companion.md): it rejects
-position + acceleration without velocity, THROTTLE_IGNORE, and a partial set of
-rate-ignore bits, and a quaternion that is not unit; the decoders check those with
-``guided_rules=True`` and the encoders below never produce any of them.
+Other autopilots refuse more (ArduPilot's GUIDED, docs/companion.md: position +
+acceleration without velocity, THROTTLE_IGNORE, a partial set of rate-ignore bits, a
+quaternion that is not unit). Each autopilot dialect names what it refuses as a
+``SetpointRules`` (``AutopilotDialect.setpoint_rules``), the decoders take it, and the
+encoders below never produce any of those.
 """
 from __future__ import annotations
 
@@ -31,22 +32,44 @@ from dataclasses import dataclass
 
 import numpy as np
 
-MAV_FRAME_LOCAL_NED = 1
-MAV_FRAME_BODY_NED = 8
+from companion.link.enums import AttitudeTargetTypemask, MavFrame, PositionTargetTypemask
 
-POS_IGNORE = (1, 2, 4)
-VEL_IGNORE = (8, 16, 32)
-ACC_IGNORE = (64, 128, 256)
-FORCE_SET = 512
-YAW_IGNORE = 1024
-YAW_RATE_IGNORE = 2048
+MAV_FRAME_LOCAL_NED = MavFrame.MAV_FRAME_LOCAL_NED
+MAV_FRAME_BODY_NED = MavFrame.MAV_FRAME_BODY_NED
 
-ATT_ROLL_RATE_IGNORE = 1
-ATT_PITCH_RATE_IGNORE = 2
-ATT_YAW_RATE_IGNORE = 4
-ATT_THRUST_BODY_SET = 32
-ATT_THROTTLE_IGNORE = 64
-ATT_ATTITUDE_IGNORE = 128
+@dataclass(frozen=True)
+class SetpointRules:
+    """What an autopilot refuses beyond the PX4 decoding rules above (default: nothing more)."""
+
+    position_acceleration_needs_velocity: bool = False
+    """A setpoint with position and acceleration but no velocity is refused."""
+    refuse_throttle_ignore: bool = False
+    """SET_ATTITUDE_TARGET with THROTTLE_IGNORE is refused."""
+    refuse_partial_rates: bool = False
+    """SET_ATTITUDE_TARGET must ignore all three body rates or none."""
+    unit_quaternion_tol: float | None = None
+    """|q| must be 1 within this (None: any quaternion that normalises)."""
+
+
+_P, _A = PositionTargetTypemask, AttitudeTargetTypemask
+POS_IGNORE = (_P.POSITION_TARGET_TYPEMASK_X_IGNORE, _P.POSITION_TARGET_TYPEMASK_Y_IGNORE,
+              _P.POSITION_TARGET_TYPEMASK_Z_IGNORE)
+VEL_IGNORE = (_P.POSITION_TARGET_TYPEMASK_VX_IGNORE, _P.POSITION_TARGET_TYPEMASK_VY_IGNORE,
+              _P.POSITION_TARGET_TYPEMASK_VZ_IGNORE)
+ACC_IGNORE = (_P.POSITION_TARGET_TYPEMASK_AX_IGNORE, _P.POSITION_TARGET_TYPEMASK_AY_IGNORE,
+              _P.POSITION_TARGET_TYPEMASK_AZ_IGNORE)
+FORCE_SET = _P.POSITION_TARGET_TYPEMASK_FORCE_SET
+YAW_IGNORE = _P.POSITION_TARGET_TYPEMASK_YAW_IGNORE
+YAW_RATE_IGNORE = _P.POSITION_TARGET_TYPEMASK_YAW_RATE_IGNORE
+
+ATT_ROLL_RATE_IGNORE = _A.ATTITUDE_TARGET_TYPEMASK_BODY_ROLL_RATE_IGNORE
+ATT_PITCH_RATE_IGNORE = _A.ATTITUDE_TARGET_TYPEMASK_BODY_PITCH_RATE_IGNORE
+ATT_YAW_RATE_IGNORE = _A.ATTITUDE_TARGET_TYPEMASK_BODY_YAW_RATE_IGNORE
+ATT_RATES_IGNORE = ATT_ROLL_RATE_IGNORE | ATT_PITCH_RATE_IGNORE | ATT_YAW_RATE_IGNORE
+ATT_THRUST_BODY_SET = 1 << 5
+"""THRUST_BODY_SET (bit 5) of newer common.xml; the pymavlink this project pins has no name for it."""
+ATT_THROTTLE_IGNORE = _A.ATTITUDE_TARGET_TYPEMASK_THROTTLE_IGNORE
+ATT_ATTITUDE_IGNORE = _A.ATTITUDE_TARGET_TYPEMASK_ATTITUDE_IGNORE
 
 
 @dataclass
@@ -75,6 +98,9 @@ class AttitudeSetpoint:
 
 @dataclass(frozen=True)
 class Rejected:
+    """A setpoint message the autopilot would drop, returned in place of the setpoint;
+    `reason` is the text the SITL reports (STATUSTEXT) for it."""
+
     reason: str
 
 
@@ -95,10 +121,10 @@ def decode_position_target(
     yaw: float,
     yaw_rate: float,
     rot_body_to_ned: np.ndarray,
-    guided_rules: bool = False,
+    rules: SetpointRules = SetpointRules(),
 ) -> TrajectorySetpoint | Rejected:
-    """SET_POSITION_TARGET_LOCAL_NED fields -> setpoint, or why PX4 (or, with
-    guided_rules, ArduPilot's GUIDED) would drop it."""
+    """SET_POSITION_TARGET_LOCAL_NED fields -> setpoint, or why PX4 (or, with rules, the
+    autopilot that has them) would drop it."""
     nan = math.nan
     if frame == MAV_FRAME_LOCAL_NED:
         p = _axes(pos, type_mask, POS_IGNORE, nan)
@@ -125,7 +151,8 @@ def decode_position_target(
         return Rejected("SET_POSITION_TARGET_LOCAL_NED force not supported")
     if not (has_pos or has_vel or has_acc):
         return Rejected("SET_POSITION_TARGET_LOCAL_NED invalid")
-    if guided_rules and math.isfinite(p[0]) and math.isfinite(a[0]) and not math.isfinite(v[0]):
+    if rules.position_acceleration_needs_velocity and math.isfinite(p[0]) and math.isfinite(a[0]) \
+            and not math.isfinite(v[0]):
         return Rejected("SET_POSITION_TARGET_LOCAL_NED position with acceleration needs velocity")
     return TrajectorySetpoint(
         pos_ned_m=p, vel_ned_mps=v, acc_ned_mps2=a,
@@ -139,18 +166,18 @@ def decode_attitude_target(
     q_wxyz: tuple[float, float, float, float],
     body_rates_radps: tuple[float, float, float],
     thrust: float,
-    guided_rules: bool = False,
+    rules: SetpointRules = SetpointRules(),
 ) -> AttitudeSetpoint | Rejected:
-    """SET_ATTITUDE_TARGET fields -> setpoint, or why it is dropped (guided_rules: also
-    ArduPilot's GUIDED checks, handle_message_set_attitude_target)."""
-    if guided_rules:
-        if type_mask & ATT_THROTTLE_IGNORE:
-            return Rejected("SET_ATTITUDE_TARGET throttle ignored")
-        if type_mask & 7 not in (0, 7):
-            return Rejected("SET_ATTITUDE_TARGET partial rate mask")
-        if not type_mask & ATT_ATTITUDE_IGNORE and not abs(math.sqrt(sum(float(x) * float(x) for x in q_wxyz))
-                                                           - 1.0) <= 1e-3:
-            return Rejected("SET_ATTITUDE_TARGET quaternion not unit")
+    """SET_ATTITUDE_TARGET fields -> setpoint, or why it is dropped (rules: what the
+    autopilot refuses beyond PX4, e.g. ArduPilot's handle_message_set_attitude_target)."""
+    if rules.refuse_throttle_ignore and type_mask & ATT_THROTTLE_IGNORE:
+        return Rejected("SET_ATTITUDE_TARGET throttle ignored")
+    if rules.refuse_partial_rates and type_mask & ATT_RATES_IGNORE not in (0, ATT_RATES_IGNORE):
+        return Rejected("SET_ATTITUDE_TARGET partial rate mask")
+    tol = rules.unit_quaternion_tol
+    if tol is not None and not type_mask & ATT_ATTITUDE_IGNORE \
+            and not abs(math.sqrt(sum(float(x) * float(x) for x in q_wxyz)) - 1.0) <= tol:
+        return Rejected("SET_ATTITUDE_TARGET quaternion not unit")
     # Non-finite thrust or rates stay non-finite here: companion.link.limits.check_attitude
     # rejects them (treating NaN thrust as 0 dropped the vehicle out of the sky).
     thrust_norm = 0.0 if type_mask & ATT_THROTTLE_IGNORE else float(thrust)
@@ -165,7 +192,7 @@ def decode_attitude_target(
         if q[0] < 0:
             q = -q
         return AttitudeSetpoint(att_q_wxyz=q, thrust_norm=thrust_norm, body_rate_radps=rates)
-    if (type_mask & 7) != 7:
+    if (type_mask & ATT_RATES_IGNORE) != ATT_RATES_IGNORE:
         return AttitudeSetpoint(att_q_wxyz=None, thrust_norm=thrust_norm, body_rate_radps=rates)
     return Rejected("SET_ATTITUDE_TARGET ignores attitude and all rates")
 

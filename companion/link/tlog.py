@@ -2,6 +2,11 @@
 
 Format: for each frame, an 8-byte big-endian unsigned microsecond Unix timestamp
 followed by the raw MAVLink frame. pymavlink's mavlogdump/mavutil read it.
+
+No key reaches a tlog: a SETUP_SIGNING frame (which carries a signing key in clear) is
+written with its 32 key bytes zeroed and its CRC recomputed, so the record still says
+that a key was set up, for which system and from when (initial_timestamp), and
+mavlogdump still reads it; its signature, if it had one, no longer verifies.
 """
 from __future__ import annotations
 
@@ -10,7 +15,34 @@ import time
 from pathlib import Path
 from typing import Callable, Iterator
 
+from companion.link.enums import MsgId
+from companion.link.msgdef.swarmdrop import MAVLink_setup_signing_message
+from companion.link.wire import HEADER_LEN_V1, HEADER_LEN_V2, IFLAG_SIGNED, MAGIC_V1, MAGIC_V2, SIGNATURE_LEN, _crc_with_extra
+
 _STAMP = struct.Struct(">Q")
+SETUP_SIGNING_CRC_EXTRA = MAVLink_setup_signing_message.crc_extra
+SETUP_SIGNING_KEY_AT = 10
+"""Payload offset of SETUP_SIGNING.secret_key[32] (wire order: u64, u8, u8, then the key)."""
+_SETUP_SIGNING_ID3 = MsgId.SETUP_SIGNING.to_bytes(3, "little")
+"""SETUP_SIGNING's id as a MAVLink 2 header carries it (bytes 7..9)."""
+_CRC_LEN = 2
+
+
+def redact_setup_signing(frame: bytes) -> bytes:
+    """A MAVLink 2 SETUP_SIGNING frame with its key bytes zeroed and its CRC recomputed
+    (any other frame unchanged). Truncated payloads (MAVLink 2 drops trailing zeros) keep
+    their length."""
+    if len(frame) < HEADER_LEN_V2 + _CRC_LEN or frame[0] != MAGIC_V2 or frame[7:10] != _SETUP_SIGNING_ID3:
+        return frame
+    end = HEADER_LEN_V2 + frame[1]
+    if len(frame) < end + _CRC_LEN:
+        return frame
+    body = bytearray(frame[:end])
+    key_at = HEADER_LEN_V2 + SETUP_SIGNING_KEY_AT
+    key_end = min(end, key_at + 32)
+    body[key_at:key_end] = bytes(max(0, key_end - key_at))
+    crc = _crc_with_extra(body[1:], SETUP_SIGNING_CRC_EXTRA)
+    return bytes(body) + crc.to_bytes(2, "little") + frame[end + 2:]
 
 
 class Tlog:
@@ -30,6 +62,8 @@ class Tlog:
         self.frames = 0
 
     def write(self, frame: bytes) -> None:
+        if frame[0] == MAGIC_V2 and len(frame) > 9 and frame[8] == _SETUP_SIGNING_ID3[1]:  # cheap pre-check of the id
+            frame = redact_setup_signing(frame)
         self._f.write(_STAMP.pack(int(self._clock() * 1e6)) + frame)
         self.frames += 1
 
@@ -51,10 +85,10 @@ def read_tlog(path: str | Path) -> Iterator[tuple[float, bytes]]:
     while i + 8 + 3 <= len(data):
         (us,) = _STAMP.unpack_from(data, i)
         magic, ln = data[i + 8], data[i + 9]
-        if magic == 0xFD:
-            size = 12 + ln + (13 if data[i + 10] & 1 else 0)
-        elif magic == 0xFE:
-            size = 8 + ln
+        if magic == MAGIC_V2:
+            size = HEADER_LEN_V2 + ln + _CRC_LEN + (SIGNATURE_LEN if data[i + 10] & IFLAG_SIGNED else 0)
+        elif magic == MAGIC_V1:
+            size = HEADER_LEN_V1 + ln + _CRC_LEN
         else:
             return
         if i + 8 + size > len(data):

@@ -17,7 +17,8 @@ Pieces:
     * ``crc16_x25``: CRC-16/MCRF4XX (fastcrc when installed, else binascii.crc_hqx).
     * ``split_datagram``: the whole frames of one UDP datagram.
     * ``FrameSplitter``: whole frames out of a byte stream (TCP, serial), resynchronising.
-    * ``Codec``: frame <-> message for one dialect module.
+    * ``Codec``: frame <-> message for one dialect module; ``Codec.builder`` gives a
+      message's named-field builder for ``encode_fields`` (companion.link.builder).
     * Typed errors: ``FrameError`` subclasses on decode, ``EncodeError`` on encode.
 
 Signing: signed frames (incompat flag 0x01) decode, but their signature is NOT verified
@@ -34,6 +35,8 @@ from collections.abc import Callable, Sequence
 from operator import attrgetter, itemgetter
 from typing import Any, NamedTuple
 
+from companion.link.builder import compile_builder
+
 _fastcrc_mcrf4xx: Callable[..., int] | None
 try:  # C implementation of exactly the MAVLink CRC; optional
     from fastcrc.crc16 import mcrf4xx as _fastcrc_mcrf4xx
@@ -42,6 +45,7 @@ except ImportError:  # pragma: no cover - depends on the environment
 
 MAGIC_V1 = 0xFE
 MAGIC_V2 = 0xFD
+MAGIC_V2_BYTES = bytes((MAGIC_V2,))
 HEADER_LEN_V1 = 6
 HEADER_LEN_V2 = 10
 IFLAG_SIGNED = 0x01
@@ -406,6 +410,7 @@ class Codec:
         self._header_cls = dialect.MAVLink_header
         self._base_init = dialect.MAVLink_message.__init__
         self._specs: dict[int, _Spec] = {}
+        self._builders: dict[int, Callable[..., tuple]] = {}
 
     def _spec(self, msgid: int) -> _Spec:
         cls = self._map.get(msgid)
@@ -477,6 +482,22 @@ class Codec:
             frame = bytes(frame)
         _, t, msgid, _, _, _, _, sysid, compid, *_ = self._parse(frame)
         return msgid, sysid, compid, t
+
+    def named(self, msgid: int, values: tuple) -> dict[str, Any]:
+        """decode_raw's wire-order values of one message by field name: scalars as they are,
+        numeric arrays as lists, char arrays as their raw bytes (the low-rate path for a
+        message read by name from a raw poll).
+
+        Raises:
+            UnknownMessage: the id is not in the dialect.
+        """
+        spec = self._specs.get(msgid) or self._spec(msgid)
+        out: dict[str, Any] = {name: values[i] for name, i in spec.scalars}
+        for name, a, b in spec.arrays:
+            out[name] = list(values[a:b])
+        for name, _raw, i in spec.chars:
+            out[name] = values[i]
+        return out
 
     def decode(self, frame: bytes) -> Any:
         """Decode one whole MAVLink 1 or 2 frame into an instance of the dialect's class.
@@ -571,6 +592,29 @@ class Codec:
             raise EncodeError(f"message {msgid!r}: {exc}") from None
         return self._frame(spec, values, sysid, compid, seq)
 
+    def builder(self, msgid: int) -> Callable[..., tuple]:
+        """The named-field builder of a message: ``build(**fields)`` -> its values for encode_fields.
+
+        Example::
+
+            build = codec.builder(MsgId.COMMAND_LONG)  # once, e.g. at start-up
+            codec.encode_fields(MsgId.COMMAND_LONG, build(target_system=1, target_component=1,
+                                command=MavCmd.MAV_CMD_COMPONENT_ARM_DISARM, param1=1.0), sysid, compid, seq)
+
+        The builder is compiled on the first request for a message and cached. Fields left
+        out take the defaults of companion.link.builder (NaN for command params 1-7, the
+        generated encoder's defaults for extensions, else zeros); an unknown field name
+        raises TypeError naming it.
+
+        Raises:
+            EncodeError: the message id is not in the dialect.
+        """
+        build = self._builders.get(msgid)
+        if build is None:
+            spec = self._specs.get(msgid) or self._spec_for_encode(msgid)
+            build = self._builders[msgid] = compile_builder(spec.cls, spec.defaults)
+        return build
+
     def _spec_for_encode(self, msgid: int) -> _Spec:
         try:
             return self._spec(msgid)
@@ -603,7 +647,7 @@ class Codec:
             raise EncodeError(f"{spec.cls.msgname}: {exc}") from None
         crc = _crc(body, 0xFFFF)
         crc = (crc >> 8) ^ spec.extra_table[crc & 0xFF]
-        return b"".join((b"\xfd", body, crc.to_bytes(2, "little")))
+        return b"".join((MAGIC_V2_BYTES, body, crc.to_bytes(2, "little")))
 
 
 def _flatten(values: Sequence, wire_arrays: tuple[tuple[int, int], ...]) -> list:

@@ -1,35 +1,22 @@
 """Autopilot dialects, picked from HEARTBEAT.autopilot (see base.py).
 
-Every module in this folder is imported and every AutopilotDialect subclass it
-defines is registered, so a third autopilot is one new file here.
+Every AutopilotDialect subclass is registered by being defined (companion.link.registry):
+the modules of this folder are imported here, and a dialect defined elsewhere (a
+plug-in, a test's toy autopilot) joins as soon as its module is imported. A third
+autopilot is one new file, here or anywhere.
 """
 from __future__ import annotations
 
-import importlib
-import pkgutil
-
 from companion.link.dialects.base import AutopilotDialect, HeartbeatState, Mode  # noqa: F401
+from companion.link.registry import SubclassRegistry
 
 
 class UnknownAutopilot(LookupError):
     """No dialect for this HEARTBEAT.autopilot value or name."""
 
 
-def _registry() -> dict[str, AutopilotDialect]:
-    found: dict[str, AutopilotDialect] = {}
-    for info in pkgutil.iter_modules(__path__):
-        if info.name != "base":
-            importlib.import_module(f"{__name__}.{info.name}")
-    stack = list(AutopilotDialect.__subclasses__())
-    while stack:
-        cls = stack.pop()
-        stack += cls.__subclasses__()
-        if not getattr(cls, "__abstractmethods__", None):
-            found[cls.name] = cls()
-    return found
-
-
-DIALECTS = _registry()
+DIALECTS: SubclassRegistry[AutopilotDialect] = SubclassRegistry(AutopilotDialect, __name__, unique=("autopilot_id",))
+"""name -> dialect; names and HEARTBEAT.autopilot values are unique."""
 
 
 def dialect_named(name: str) -> AutopilotDialect:

@@ -2,17 +2,23 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 
 from companion.link.dialects.base import (
     MODE_FLAG_CUSTOM,
     MODE_FLAG_GUIDED,
     MODE_FLAG_MANUAL_INPUT,
     MODE_FLAG_STABILIZE,
+    AfterLoss,
     AutopilotDialect,
+    CarryOn,
     HeartbeatState,
+    LossBehaviour,
     Mode,
     clamp01,
+    param_or,
 )
+from companion.link.setpoints import SetpointRules
 
 STABILIZE, GUIDED, LOITER, RTL, LAND, BRAKE, THROW = 0, 4, 5, 6, 9, 17, 18
 GUID_OPTIONS_THRUST = 8
@@ -22,6 +28,10 @@ ANGLE_BOOST_COS_MIN = 0.1
 
 
 class ArduPilot(AutopilotDialect):
+    """ArduCopter: offboard is GUIDED, take-off starts from GUIDED, a carrier release is a
+    THROW; integer parameters travel C-cast, and GUIDED refuses the setpoints its own
+    checks refuse (setpoint_rules)."""
+
     name = "ardupilot"
     autopilot_id = 3  # MAV_AUTOPILOT_ARDUPILOTMEGA
     param_encoding = "c_cast"
@@ -32,6 +42,9 @@ class ArduPilot(AutopilotDialect):
              Mode.RETURN: RTL, Mode.LAND: LAND, Mode.THROW: THROW}
     takeoff_from_mode = Mode.OFFBOARD
     carrier_mode = Mode.THROW
+    # GUIDED's own checks (mode_guided.cpp, GCS_MAVLink_Copter.cpp handle_message_set_*_target)
+    setpoint_rules = SetpointRules(position_acceleration_needs_velocity=True, refuse_throttle_ignore=True,
+                                   refuse_partial_rates=True, unit_quaternion_tol=1e-3)
     _names = {STABILIZE: "STABILIZE", GUIDED: "GUIDED", LOITER: "LOITER", RTL: "RTL", LAND: "LAND", BRAKE: "BRAKE",
               THROW: "THROW"}
 
@@ -76,3 +89,30 @@ class ArduPilot(AutopilotDialect):
 
     def collective_from_thrust_field(self, thrust: float, cos_tilt: float) -> float:
         return clamp01(clamp01(thrust) / max(cos_tilt, ANGLE_BOOST_COS_MIN))
+
+    loss_params = ("GUID_TIMEOUT", "WPNAV_ACCEL", "WPNAV_ACCEL_Z", "PSC_JERK_XY", "PSC_JERK_Z")
+    loss_required_params = ("GUID_TIMEOUT",)
+
+    def loss_behaviour(self, params: Mapping[str, float], rc: bool = False) -> LossBehaviour:
+        """ArduCopter GUIDED (mode_guided.cpp; ../shared/notes/mavlink-facts.md, Copter 4.6
+        SITL): until GUID_TIMEOUT (default 3 s) the target keeps moving along the last
+        velocity and acceleration; then they are zeroed and the vehicle stops and holds in
+        GUIDED, armed, for ever (no mode change, no landing). An RC link changes nothing.
+        It stops within GUIDED's kinematic limits (pva_control_start): WPNAV_ACCEL and
+        WPNAV_ACCEL_Z (cm/s^2), the position controller's PSC_JERK_XY and PSC_JERK_Z."""
+        cm = 0.01
+        return LossBehaviour(
+            param_or(params, "GUID_TIMEOUT", 3.0), CarryOn.VELOCITY_ACCELERATION, AfterLoss.HOLD, Mode.OFFBOARD,
+            brake_hor_mps2=param_or(params, "WPNAV_ACCEL", 250.0) * cm,
+            brake_ver_mps2=param_or(params, "WPNAV_ACCEL_Z", 100.0) * cm,
+            jerk_hor_mps3=param_or(params, "PSC_JERK_XY", 5.0), jerk_ver_mps3=param_or(params, "PSC_JERK_Z", 5.0),
+            params=tuple((n, float(params[n])) for n in self.loss_params if n in params))
+
+    def loss_fix(self, then: AfterLoss) -> dict[str, float]:
+        if then == AfterLoss.HOLD:
+            return {}  # GUIDED holds after GUID_TIMEOUT whatever the parameters
+        raise ValueError(f"ArduCopter's GUIDED always stops and holds after GUID_TIMEOUT; it cannot be set to "
+                         f"{then.value}")
+
+    def loss_fix_text(self) -> str:
+        return "ArduCopter GUIDED always holds (nothing to set)"

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
+from dataclasses import replace
 
 from companion.link.dialects.base import (
     MODE_FLAG_AUTO,
@@ -10,11 +12,28 @@ from companion.link.dialects.base import (
     MODE_FLAG_MANUAL_INPUT,
     MODE_FLAG_STABILIZE,
     STATE_ACTIVE,
+    AfterLoss,
     AutopilotDialect,
+    CarryOn,
     HeartbeatState,
+    LossBehaviour,
     Mode,
     clamp01,
+    param_or,
 )
+
+COM_OBL_RC_ACT_MODES = {0: Mode.POSITION, 1: Mode.POSITION, 2: Mode.MANUAL}
+"""The pilot's mode each COM_OBL_RC_ACT value 0-2 asks for (1, Altitude, has no Mode of its own
+here: reported as Position)."""
+PX4_STOP_LEAD_S = 0.6
+"""Hold and Land fly to the stop point Navigator predicts from the horizontal speed s:
+s^2 / (2 MPC_ACC_HOR) + s accel_delay_max / MPC_JERK_AUTO with accel_delay_max = 0.6
+MPC_JERK_AUTO (Navigator::preproject_stop_point, TrajMath computeBrakingDistanceFromVelocity),
+so a lead of 0.6 s whatever the jerk limit."""
+PX4_NO_RC_DRIFT_M = 4.0
+"""Horizontal drift of PX4 v1.16's descent with no horizontal control (COM_OBL_RC_ACT 0 without
+RC) from a hover, in SIH with no wind (../shared/notes/mavlink-facts.md), m: its tilt and
+accelerometer bias act unopposed; wind adds to it."""
 
 
 def _px4(main: int, sub: int = 0) -> int:
@@ -22,6 +41,10 @@ def _px4(main: int, sub: int = 0) -> int:
 
 
 class Px4(AutopilotDialect):
+    """PX4: offboard is OFFBOARD, take-off starts from Hold (AUTO.LOITER), custom_mode is
+    main << 16 | sub << 24; integer parameters travel bytewise, and there is no carrier
+    mode (a carrier release is PX4's throw launch, COM_THROW_EN)."""
+
     name = "px4"
     autopilot_id = 12  # MAV_AUTOPILOT_PX4
     param_encoding = "bytewise"
@@ -83,3 +106,50 @@ class Px4(AutopilotDialect):
 
     def collective_from_thrust_field(self, thrust: float, cos_tilt: float) -> float:
         return clamp01(thrust)
+
+    loss_params = ("COM_OF_LOSS_T", "COM_OBL_RC_ACT", "MPC_LAND_SPEED", "MPC_ACC_HOR", "MPC_ACC_UP_MAX",
+                   "MPC_ACC_DOWN_MAX", "MPC_JERK_AUTO")
+    loss_required_params = ("COM_OF_LOSS_T", "COM_OBL_RC_ACT")
+
+    def loss_behaviour(self, params: Mapping[str, float], rc: bool = False) -> LossBehaviour:
+        """PX4 (commander, offboard loss; ../shared/notes/mavlink-facts.md, PX4 v1.16 SIH): the
+        last setpoint is flown as it was for COM_OF_LOSS_T (default 1 s), then COM_OBL_RC_ACT
+        (default 0): 0 Position, 1 Altitude, 2 Manual are a pilot's modes; without RC PX4's
+        fallback descends at MPC_LAND_SPEED with no horizontal control (it drifts; measured
+        4 m from a hover); 3 Return, 4 Land, 5 Hold (for ever, never lands by itself),
+        6 Terminate, 7 Disarm; any other value is Position's (failsafe.cpp,
+        fromOffboardLossActParam's default). Hold and Land stop at the point Navigator predicts
+        (preproject_stop_point: s^2/(2 MPC_ACC_HOR) + 0.6 s) within MPC_ACC_HOR and
+        MPC_JERK_AUTO, vertically within MPC_ACC_UP_MAX / MPC_ACC_DOWN_MAX."""
+        timeout = param_or(params, "COM_OF_LOSS_T", 1.0)
+        action = int(param_or(params, "COM_OBL_RC_ACT", 0.0))
+        land = param_or(params, "MPC_LAND_SPEED", 0.7)
+        jerk = param_or(params, "MPC_JERK_AUTO", 4.0)
+        hold = LossBehaviour(
+            timeout, CarryOn.SETPOINT, AfterLoss.HOLD, Mode.HOLD, brake_hor_mps2=param_or(params, "MPC_ACC_HOR", 3.0),
+            brake_ver_mps2=min(param_or(params, "MPC_ACC_UP_MAX", 4.0), param_or(params, "MPC_ACC_DOWN_MAX", 3.0)),
+            jerk_hor_mps3=jerk, jerk_ver_mps3=jerk, stop_lead_s=PX4_STOP_LEAD_S,
+            params=tuple((n, float(params[n])) for n in self.loss_params if n in params), action_param="COM_OBL_RC_ACT")
+        if action in COM_OBL_RC_ACT_MODES or action not in range(8):
+            mode = COM_OBL_RC_ACT_MODES.get(action, Mode.POSITION)
+            if rc:
+                return replace(hold, then=AfterLoss.PILOT, mode=mode)
+            return replace(hold, then=AfterLoss.DESCEND, mode=mode, descent_speed_mps=land, drift_m=PX4_NO_RC_DRIFT_M)
+        if action == 3:
+            return replace(hold, then=AfterLoss.RETURN, mode=Mode.RETURN, descent_speed_mps=land)
+        if action == 4:
+            return replace(hold, then=AfterLoss.LAND, mode=Mode.LAND, descent_speed_mps=land)
+        if action in (6, 7):
+            return replace(hold, then=AfterLoss.MOTORS_OFF)
+        return hold  # 5
+
+    def loss_fix(self, then: AfterLoss) -> dict[str, float]:
+        if then == AfterLoss.HOLD:
+            return {"COM_OBL_RC_ACT": 5}
+        if then == AfterLoss.LAND:
+            return {"COM_OBL_RC_ACT": 4}
+        raise ValueError(f"PX4 is set to {then.value} on offboard loss by no swarmdrop option; set COM_OBL_RC_ACT "
+                         "yourself")
+
+    def loss_fix_text(self) -> str:
+        return "set COM_OBL_RC_ACT to 5 (Hold) or 4 (Land)"

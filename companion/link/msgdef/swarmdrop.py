@@ -367,8 +367,12 @@ SWARMDROP_STATE_FLAGS_OWN_STATE_VALID = 2
 enums["SWARMDROP_STATE_FLAGS"][2] = EnumEntry("SWARMDROP_STATE_FLAGS_OWN_STATE_VALID", """The position, velocity and attitude fields are valid (else ignore them).""")
 SWARMDROP_STATE_FLAGS_READY = 4
 enums["SWARMDROP_STATE_FLAGS"][4] = EnumEntry("SWARMDROP_STATE_FLAGS_READY", """The vehicle is ready to start the transit at t_go.""")
-SWARMDROP_STATE_FLAGS_ENUM_END = 5
-enums["SWARMDROP_STATE_FLAGS"][5] = EnumEntry("SWARMDROP_STATE_FLAGS_ENUM_END", """""")
+SWARMDROP_STATE_FLAGS_ID_CONFLICT = 8
+enums["SWARMDROP_STATE_FLAGS"][8] = EnumEntry("SWARMDROP_STATE_FLAGS_ID_CONFLICT", """Another sender has claimed this vehicle's id lately (docs/swarm.md).""")
+SWARMDROP_STATE_FLAGS_HANDED_OVER = 16
+enums["SWARMDROP_STATE_FLAGS"][16] = EnumEntry("SWARMDROP_STATE_FLAGS_HANDED_OVER", """An ABORT plan handed the vehicle to its autopilot's own Hold: its agent commands nothing.""")
+SWARMDROP_STATE_FLAGS_ENUM_END = 17
+enums["SWARMDROP_STATE_FLAGS"][17] = EnumEntry("SWARMDROP_STATE_FLAGS_ENUM_END", """""")
 
 # SWARMDROP_PHASE
 enums["SWARMDROP_PHASE"] = Enum()
@@ -390,6 +394,62 @@ enums["SWARMDROP_PHASE"][6] = EnumEntry("SWARMDROP_PHASE_FAILED", """Lost contro
 SWARMDROP_PHASE_ENUM_END = 7
 enums["SWARMDROP_PHASE"][7] = EnumEntry("SWARMDROP_PHASE_ENUM_END", """""")
 
+# SWARMDROP_COMMAND
+enums["SWARMDROP_COMMAND"] = Enum()
+enums["SWARMDROP_COMMAND"].bitmask = False
+SWARMDROP_COMMAND_NONE = 0
+enums["SWARMDROP_COMMAND"][0] = EnumEntry("SWARMDROP_COMMAND_NONE", """The mission's own plan (no command yet).""")
+SWARMDROP_COMMAND_HOLD = 1
+enums["SWARMDROP_COMMAND"][1] = EnumEntry("SWARMDROP_COMMAND_HOLD", """The formation centre stops where it is; the formation is kept.""")
+SWARMDROP_COMMAND_RESUME = 2
+enums["SWARMDROP_COMMAND"][2] = EnumEntry("SWARMDROP_COMMAND_RESUME", """The centre goes on along the path it was held on.""")
+SWARMDROP_COMMAND_GOTO = 3
+enums["SWARMDROP_COMMAND"][3] = EnumEntry("SWARMDROP_COMMAND_GOTO", """The centre flies new waypoints at a new speed.""")
+SWARMDROP_COMMAND_FORMATION = 4
+enums["SWARMDROP_COMMAND"][4] = EnumEntry("SWARMDROP_COMMAND_FORMATION", """A new shape, radius, spacing or rotation.""")
+SWARMDROP_COMMAND_EXCLUDE = 5
+enums["SWARMDROP_COMMAND"][5] = EnumEntry("SWARMDROP_COMMAND_EXCLUDE", """Vehicles leave consensus (hold or land); the others close the gap.""")
+SWARMDROP_COMMAND_REJOIN = 6
+enums["SWARMDROP_COMMAND"][6] = EnumEntry("SWARMDROP_COMMAND_REJOIN", """Excluded vehicles come back.""")
+SWARMDROP_COMMAND_LAND = 7
+enums["SWARMDROP_COMMAND"][7] = EnumEntry("SWARMDROP_COMMAND_LAND", """All or some vehicles land, staggered.""")
+SWARMDROP_COMMAND_RTL = 8
+enums["SWARMDROP_COMMAND"][8] = EnumEntry("SWARMDROP_COMMAND_RTL", """The formation flies back to the launch area, then lands.""")
+SWARMDROP_COMMAND_ABORT = 9
+enums["SWARMDROP_COMMAND"][9] = EnumEntry("SWARMDROP_COMMAND_ABORT", """Every agent hands its vehicle to the autopilot's own Hold/Loiter now.""")
+SWARMDROP_COMMAND_ENUM_END = 10
+enums["SWARMDROP_COMMAND"][10] = EnumEntry("SWARMDROP_COMMAND_ENUM_END", """""")
+
+# SWARMDROP_SHAPE
+enums["SWARMDROP_SHAPE"] = Enum()
+enums["SWARMDROP_SHAPE"].bitmask = False
+SWARMDROP_SHAPE_CIRCLE = 0
+enums["SWARMDROP_SHAPE"][0] = EnumEntry("SWARMDROP_SHAPE_CIRCLE", """A horizontal circle of radius_m.""")
+SWARMDROP_SHAPE_LINE = 1
+enums["SWARMDROP_SHAPE"][1] = EnumEntry("SWARMDROP_SHAPE_LINE", """A horizontal line across the direction of travel, spacing_m apart.""")
+SWARMDROP_SHAPE_GRID = 2
+enums["SWARMDROP_SHAPE"][2] = EnumEntry("SWARMDROP_SHAPE_GRID", """A horizontal square grid, spacing_m apart.""")
+SWARMDROP_SHAPE_WEDGE = 3
+enums["SWARMDROP_SHAPE"][3] = EnumEntry("SWARMDROP_SHAPE_WEDGE", """A V opening backwards, spacing_m apart along each arm.""")
+SWARMDROP_SHAPE_SHELL = 4
+enums["SWARMDROP_SHAPE"][4] = EnumEntry("SWARMDROP_SHAPE_SHELL", """A sphere of radius_m (3-D).""")
+SWARMDROP_SHAPE_ENUM_END = 5
+enums["SWARMDROP_SHAPE"][5] = EnumEntry("SWARMDROP_SHAPE_ENUM_END", """""")
+
+# SWARMDROP_PLAN_FLAGS
+enums["SWARMDROP_PLAN_FLAGS"] = Enum()
+enums["SWARMDROP_PLAN_FLAGS"].bitmask = True
+SWARMDROP_PLAN_FLAGS_HOLD = 1
+enums["SWARMDROP_PLAN_FLAGS"][1] = EnumEntry("SWARMDROP_PLAN_FLAGS_HOLD", """The centre holds at the first waypoint.""")
+SWARMDROP_PLAN_FLAGS_LAND_AT_END = 2
+enums["SWARMDROP_PLAN_FLAGS"][2] = EnumEntry("SWARMDROP_PLAN_FLAGS_LAND_AT_END", """Every active vehicle lands when the centre reaches the last waypoint (RTL).""")
+SWARMDROP_PLAN_FLAGS_ABORT = 4
+enums["SWARMDROP_PLAN_FLAGS"][4] = EnumEntry("SWARMDROP_PLAN_FLAGS_ABORT", """Every agent hands its vehicle to the autopilot's Hold/Loiter and commands nothing.""")
+SWARMDROP_PLAN_FLAGS_EXCLUDED_LAND = 8
+enums["SWARMDROP_PLAN_FLAGS"][8] = EnumEntry("SWARMDROP_PLAN_FLAGS_EXCLUDED_LAND", """Excluded vehicles land (else they hold where they are).""")
+SWARMDROP_PLAN_FLAGS_ENUM_END = 9
+enums["SWARMDROP_PLAN_FLAGS"][9] = EnumEntry("SWARMDROP_PLAN_FLAGS_ENUM_END", """""")
+
 # message IDs
 MAVLINK_MSG_ID_BAD_DATA = -1
 MAVLINK_MSG_ID_UNKNOWN = -2
@@ -406,6 +466,8 @@ MAVLINK_MSG_ID_ATTITUDE = 30
 MAVLINK_MSG_ID_ATTITUDE_QUATERNION = 31
 MAVLINK_MSG_ID_LOCAL_POSITION_NED = 32
 MAVLINK_MSG_ID_GLOBAL_POSITION_INT = 33
+MAVLINK_MSG_ID_MISSION_REQUEST_LIST = 43
+MAVLINK_MSG_ID_MISSION_COUNT = 44
 MAVLINK_MSG_ID_SET_GPS_GLOBAL_ORIGIN = 48
 MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN = 49
 MAVLINK_MSG_ID_COMMAND_INT = 75
@@ -415,7 +477,9 @@ MAVLINK_MSG_ID_SET_ATTITUDE_TARGET = 82
 MAVLINK_MSG_ID_ATTITUDE_TARGET = 83
 MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED = 84
 MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED = 85
+MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL = 110
 MAVLINK_MSG_ID_TIMESYNC = 111
+MAVLINK_MSG_ID_BATTERY_STATUS = 147
 MAVLINK_MSG_ID_AUTOPILOT_VERSION = 148
 MAVLINK_MSG_ID_HOME_POSITION = 242
 MAVLINK_MSG_ID_MESSAGE_INTERVAL = 244
@@ -425,6 +489,8 @@ MAVLINK_MSG_ID_SETUP_SIGNING = 256
 MAVLINK_MSG_ID_UTM_GLOBAL_POSITION = 340
 MAVLINK_MSG_ID_SWARMDROP_STATE = 59900
 MAVLINK_MSG_ID_SWARMDROP_TICK = 59901
+MAVLINK_MSG_ID_SWARMDROP_PLAN = 59902
+MAVLINK_MSG_ID_SWARMDROP_SLOTS = 59903
 
 
 class MAVLink_heartbeat_message(MAVLink_message):
@@ -1052,6 +1118,91 @@ class MAVLink_global_position_int_message(MAVLink_message):
 setattr(MAVLink_global_position_int_message, "name", mavlink_msg_deprecated_name_property())
 
 
+class MAVLink_mission_request_list_message(MAVLink_message):
+    """
+    Request the overall list of mission items from the
+    system/component.
+    """
+
+    id = MAVLINK_MSG_ID_MISSION_REQUEST_LIST
+    msgname = "MISSION_REQUEST_LIST"
+    fieldnames = ["target_system", "target_component", "mission_type"]
+    ordered_fieldnames = ["target_system", "target_component", "mission_type"]
+    fieldtypes = ["uint8_t", "uint8_t", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {}
+    native_format = bytearray(b"<BBB")
+    orders = [0, 1, 2]
+    lengths = [1, 1, 1]
+    array_lengths = [0, 0, 0]
+    crc_extra = 132
+    unpacker = struct.Struct("<BBB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, target_system: int, target_component: int, mission_type: int = 0):
+        MAVLink_message.__init__(self, MAVLink_mission_request_list_message.id, MAVLink_mission_request_list_message.msgname)
+        self._fieldnames = MAVLink_mission_request_list_message.fieldnames
+        self._instance_field = MAVLink_mission_request_list_message.instance_field
+        self._instance_offset = MAVLink_mission_request_list_message.instance_offset
+        self.target_system = target_system
+        self.target_component = target_component
+        self.mission_type = mission_type
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.target_system, self.target_component, self.mission_type), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_mission_request_list_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_mission_count_message(MAVLink_message):
+    """
+    This message is emitted as response to MISSION_REQUEST_LIST by the
+    MAV and to initiate a write transaction. The GCS can then request
+    the individual mission item based on the knowledge of the total
+    number of waypoints.
+    """
+
+    id = MAVLINK_MSG_ID_MISSION_COUNT
+    msgname = "MISSION_COUNT"
+    fieldnames = ["target_system", "target_component", "count", "mission_type"]
+    ordered_fieldnames = ["count", "target_system", "target_component", "mission_type"]
+    fieldtypes = ["uint8_t", "uint8_t", "uint16_t", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {}
+    native_format = bytearray(b"<HBBB")
+    orders = [1, 2, 0, 3]
+    lengths = [1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0]
+    crc_extra = 221
+    unpacker = struct.Struct("<HBBB")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, target_system: int, target_component: int, count: int, mission_type: int = 0):
+        MAVLink_message.__init__(self, MAVLink_mission_count_message.id, MAVLink_mission_count_message.msgname)
+        self._fieldnames = MAVLink_mission_count_message.fieldnames
+        self._instance_field = MAVLink_mission_count_message.instance_field
+        self._instance_offset = MAVLink_mission_count_message.instance_offset
+        self.target_system = target_system
+        self.target_component = target_component
+        self.count = count
+        self.mission_type = mission_type
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.count, self.target_system, self.target_component, self.mission_type), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_mission_count_message, "name", mavlink_msg_deprecated_name_property())
+
+
 class MAVLink_set_gps_global_origin_message(MAVLink_message):
     """
     Sets the GPS coordinates of the vehicle local origin (0,0,0)
@@ -1497,6 +1648,48 @@ class MAVLink_position_target_local_ned_message(MAVLink_message):
 setattr(MAVLink_position_target_local_ned_message, "name", mavlink_msg_deprecated_name_property())
 
 
+class MAVLink_file_transfer_protocol_message(MAVLink_message):
+    """
+    File transfer protocol message:
+    https://mavlink.io/en/services/ftp.html.
+    """
+
+    id = MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL
+    msgname = "FILE_TRANSFER_PROTOCOL"
+    fieldnames = ["target_network", "target_system", "target_component", "payload"]
+    ordered_fieldnames = ["target_network", "target_system", "target_component", "payload"]
+    fieldtypes = ["uint8_t", "uint8_t", "uint8_t", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {}
+    native_format = bytearray(b"<BBBB")
+    orders = [0, 1, 2, 3]
+    lengths = [1, 1, 1, 251]
+    array_lengths = [0, 0, 0, 251]
+    crc_extra = 84
+    unpacker = struct.Struct("<BBB251B")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, target_network: int, target_system: int, target_component: int, payload: Sequence[int]):
+        MAVLink_message.__init__(self, MAVLink_file_transfer_protocol_message.id, MAVLink_file_transfer_protocol_message.msgname)
+        self._fieldnames = MAVLink_file_transfer_protocol_message.fieldnames
+        self._instance_field = MAVLink_file_transfer_protocol_message.instance_field
+        self._instance_offset = MAVLink_file_transfer_protocol_message.instance_offset
+        self.target_network = target_network
+        self.target_system = target_system
+        self.target_component = target_component
+        self.payload = payload
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.target_network, self.target_system, self.target_component, self.payload[0], self.payload[1], self.payload[2], self.payload[3], self.payload[4], self.payload[5], self.payload[6], self.payload[7], self.payload[8], self.payload[9], self.payload[10], self.payload[11], self.payload[12], self.payload[13], self.payload[14], self.payload[15], self.payload[16], self.payload[17], self.payload[18], self.payload[19], self.payload[20], self.payload[21], self.payload[22], self.payload[23], self.payload[24], self.payload[25], self.payload[26], self.payload[27], self.payload[28], self.payload[29], self.payload[30], self.payload[31], self.payload[32], self.payload[33], self.payload[34], self.payload[35], self.payload[36], self.payload[37], self.payload[38], self.payload[39], self.payload[40], self.payload[41], self.payload[42], self.payload[43], self.payload[44], self.payload[45], self.payload[46], self.payload[47], self.payload[48], self.payload[49], self.payload[50], self.payload[51], self.payload[52], self.payload[53], self.payload[54], self.payload[55], self.payload[56], self.payload[57], self.payload[58], self.payload[59], self.payload[60], self.payload[61], self.payload[62], self.payload[63], self.payload[64], self.payload[65], self.payload[66], self.payload[67], self.payload[68], self.payload[69], self.payload[70], self.payload[71], self.payload[72], self.payload[73], self.payload[74], self.payload[75], self.payload[76], self.payload[77], self.payload[78], self.payload[79], self.payload[80], self.payload[81], self.payload[82], self.payload[83], self.payload[84], self.payload[85], self.payload[86], self.payload[87], self.payload[88], self.payload[89], self.payload[90], self.payload[91], self.payload[92], self.payload[93], self.payload[94], self.payload[95], self.payload[96], self.payload[97], self.payload[98], self.payload[99], self.payload[100], self.payload[101], self.payload[102], self.payload[103], self.payload[104], self.payload[105], self.payload[106], self.payload[107], self.payload[108], self.payload[109], self.payload[110], self.payload[111], self.payload[112], self.payload[113], self.payload[114], self.payload[115], self.payload[116], self.payload[117], self.payload[118], self.payload[119], self.payload[120], self.payload[121], self.payload[122], self.payload[123], self.payload[124], self.payload[125], self.payload[126], self.payload[127], self.payload[128], self.payload[129], self.payload[130], self.payload[131], self.payload[132], self.payload[133], self.payload[134], self.payload[135], self.payload[136], self.payload[137], self.payload[138], self.payload[139], self.payload[140], self.payload[141], self.payload[142], self.payload[143], self.payload[144], self.payload[145], self.payload[146], self.payload[147], self.payload[148], self.payload[149], self.payload[150], self.payload[151], self.payload[152], self.payload[153], self.payload[154], self.payload[155], self.payload[156], self.payload[157], self.payload[158], self.payload[159], self.payload[160], self.payload[161], self.payload[162], self.payload[163], self.payload[164], self.payload[165], self.payload[166], self.payload[167], self.payload[168], self.payload[169], self.payload[170], self.payload[171], self.payload[172], self.payload[173], self.payload[174], self.payload[175], self.payload[176], self.payload[177], self.payload[178], self.payload[179], self.payload[180], self.payload[181], self.payload[182], self.payload[183], self.payload[184], self.payload[185], self.payload[186], self.payload[187], self.payload[188], self.payload[189], self.payload[190], self.payload[191], self.payload[192], self.payload[193], self.payload[194], self.payload[195], self.payload[196], self.payload[197], self.payload[198], self.payload[199], self.payload[200], self.payload[201], self.payload[202], self.payload[203], self.payload[204], self.payload[205], self.payload[206], self.payload[207], self.payload[208], self.payload[209], self.payload[210], self.payload[211], self.payload[212], self.payload[213], self.payload[214], self.payload[215], self.payload[216], self.payload[217], self.payload[218], self.payload[219], self.payload[220], self.payload[221], self.payload[222], self.payload[223], self.payload[224], self.payload[225], self.payload[226], self.payload[227], self.payload[228], self.payload[229], self.payload[230], self.payload[231], self.payload[232], self.payload[233], self.payload[234], self.payload[235], self.payload[236], self.payload[237], self.payload[238], self.payload[239], self.payload[240], self.payload[241], self.payload[242], self.payload[243], self.payload[244], self.payload[245], self.payload[246], self.payload[247], self.payload[248], self.payload[249], self.payload[250]), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_file_transfer_protocol_message, "name", mavlink_msg_deprecated_name_property())
+
+
 class MAVLink_timesync_message(MAVLink_message):
     """
     Time synchronization message.         The message is used for both
@@ -1552,6 +1745,57 @@ class MAVLink_timesync_message(MAVLink_message):
 # Define name on the class for backwards compatibility (it is now msgname).
 # Done with setattr to hide the class variable from mypy.
 setattr(MAVLink_timesync_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_battery_status_message(MAVLink_message):
+    """
+    Battery information
+    """
+
+    id = MAVLINK_MSG_ID_BATTERY_STATUS
+    msgname = "BATTERY_STATUS"
+    fieldnames = ["id", "battery_function", "type", "temperature", "voltages", "current_battery", "current_consumed", "energy_consumed", "battery_remaining", "time_remaining", "charge_state", "voltages_ext", "mode", "fault_bitmask"]
+    ordered_fieldnames = ["current_consumed", "energy_consumed", "temperature", "voltages", "current_battery", "id", "battery_function", "type", "battery_remaining", "time_remaining", "charge_state", "voltages_ext", "mode", "fault_bitmask"]
+    fieldtypes = ["uint8_t", "uint8_t", "uint8_t", "int16_t", "uint16_t", "int16_t", "int32_t", "int32_t", "int8_t", "int32_t", "uint8_t", "uint16_t", "uint8_t", "uint32_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {"temperature": "cdegC", "voltages": "mV", "current_battery": "cA", "current_consumed": "mAh", "energy_consumed": "hJ", "battery_remaining": "%", "time_remaining": "s", "voltages_ext": "mV"}
+    native_format = bytearray(b"<iihHhBBBbiBHBI")
+    orders = [5, 6, 7, 2, 3, 4, 0, 1, 8, 9, 10, 11, 12, 13]
+    lengths = [1, 1, 1, 10, 1, 1, 1, 1, 1, 1, 1, 4, 1, 1]
+    array_lengths = [0, 0, 0, 10, 0, 0, 0, 0, 0, 0, 0, 4, 0, 0]
+    crc_extra = 154
+    unpacker = struct.Struct("<iih10HhBBBbiB4HBI")
+    instance_field = "id"
+    instance_offset = 32
+
+    def __init__(self, id: int, battery_function: int, type: int, temperature: int, voltages: Sequence[int], current_battery: int, current_consumed: int, energy_consumed: int, battery_remaining: int, time_remaining: int = 0, charge_state: int = 0, voltages_ext: Sequence[int] = (0, 0, 0, 0), mode: int = 0, fault_bitmask: int = 0):
+        MAVLink_message.__init__(self, MAVLink_battery_status_message.id, MAVLink_battery_status_message.msgname)
+        self._fieldnames = MAVLink_battery_status_message.fieldnames
+        self._instance_field = MAVLink_battery_status_message.instance_field
+        self._instance_offset = MAVLink_battery_status_message.instance_offset
+        self.id = id
+        self.battery_function = battery_function
+        self.type = type
+        self.temperature = temperature
+        self.voltages = voltages
+        self.current_battery = current_battery
+        self.current_consumed = current_consumed
+        self.energy_consumed = energy_consumed
+        self.battery_remaining = battery_remaining
+        self.time_remaining = time_remaining
+        self.charge_state = charge_state
+        self.voltages_ext = voltages_ext
+        self.mode = mode
+        self.fault_bitmask = fault_bitmask
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.current_consumed, self.energy_consumed, self.temperature, self.voltages[0], self.voltages[1], self.voltages[2], self.voltages[3], self.voltages[4], self.voltages[5], self.voltages[6], self.voltages[7], self.voltages[8], self.voltages[9], self.current_battery, self.id, self.battery_function, self.type, self.battery_remaining, self.time_remaining, self.charge_state, self.voltages_ext[0], self.voltages_ext[1], self.voltages_ext[2], self.voltages_ext[3], self.mode, self.fault_bitmask), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_battery_status_message, "name", mavlink_msg_deprecated_name_property())
 
 
 class MAVLink_autopilot_version_message(MAVLink_message):
@@ -1898,22 +2142,22 @@ class MAVLink_swarmdrop_state_message(MAVLink_message):
 
     id = MAVLINK_MSG_ID_SWARMDROP_STATE
     msgname = "SWARMDROP_STATE"
-    fieldnames = ["time_usec", "t_go_usec", "x", "y", "z", "vx", "vy", "vz", "q", "phase", "flags", "vehicle_id"]
-    ordered_fieldnames = ["time_usec", "t_go_usec", "x", "y", "z", "vx", "vy", "vz", "q", "phase", "flags", "vehicle_id"]
-    fieldtypes = ["uint64_t", "uint64_t", "float", "float", "float", "float", "float", "float", "float", "uint8_t", "uint8_t", "uint8_t"]
+    fieldnames = ["time_usec", "t_go_usec", "x", "y", "z", "vx", "vy", "vz", "q", "phase", "flags", "vehicle_id", "plan_seq"]
+    ordered_fieldnames = ["time_usec", "t_go_usec", "x", "y", "z", "vx", "vy", "vz", "q", "phase", "flags", "vehicle_id", "plan_seq"]
+    fieldtypes = ["uint64_t", "uint64_t", "float", "float", "float", "float", "float", "float", "float", "uint8_t", "uint8_t", "uint8_t", "uint32_t"]
     fielddisplays_by_name: Dict[str, str] = {"flags": "bitmask"}
     fieldenums_by_name: Dict[str, str] = {"phase": "SWARMDROP_PHASE", "flags": "SWARMDROP_STATE_FLAGS"}
     fieldunits_by_name: Dict[str, str] = {"time_usec": "us", "t_go_usec": "us", "x": "m", "y": "m", "z": "m", "vx": "m/s", "vy": "m/s", "vz": "m/s"}
-    native_format = bytearray(b"<QQfffffffBBB")
-    orders = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11]
-    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 4, 1, 1, 1]
-    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 4, 0, 0, 0]
+    native_format = bytearray(b"<QQfffffffBBBI")
+    orders = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12]
+    lengths = [1, 1, 1, 1, 1, 1, 1, 1, 4, 1, 1, 1, 1]
+    array_lengths = [0, 0, 0, 0, 0, 0, 0, 0, 4, 0, 0, 0, 0]
     crc_extra = 132
-    unpacker = struct.Struct("<QQffffff4fBBB")
+    unpacker = struct.Struct("<QQffffff4fBBBI")
     instance_field = None
     instance_offset = -1
 
-    def __init__(self, time_usec: int, t_go_usec: int, x: float, y: float, z: float, vx: float, vy: float, vz: float, q: Sequence[float], phase: int, flags: int, vehicle_id: int):
+    def __init__(self, time_usec: int, t_go_usec: int, x: float, y: float, z: float, vx: float, vy: float, vz: float, q: Sequence[float], phase: int, flags: int, vehicle_id: int, plan_seq: int = 0):
         MAVLink_message.__init__(self, MAVLink_swarmdrop_state_message.id, MAVLink_swarmdrop_state_message.msgname)
         self._fieldnames = MAVLink_swarmdrop_state_message.fieldnames
         self._instance_field = MAVLink_swarmdrop_state_message.instance_field
@@ -1930,9 +2174,10 @@ class MAVLink_swarmdrop_state_message(MAVLink_message):
         self.phase = phase
         self.flags = flags
         self.vehicle_id = vehicle_id
+        self.plan_seq = plan_seq
 
     def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
-        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.t_go_usec, self.x, self.y, self.z, self.vx, self.vy, self.vz, self.q[0], self.q[1], self.q[2], self.q[3], self.phase, self.flags, self.vehicle_id), force_mavlink1=force_mavlink1)
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.time_usec, self.t_go_usec, self.x, self.y, self.z, self.vx, self.vy, self.vz, self.q[0], self.q[1], self.q[2], self.q[3], self.phase, self.flags, self.vehicle_id, self.plan_seq), force_mavlink1=force_mavlink1)
 
 
 # Define name on the class for backwards compatibility (it is now msgname).
@@ -1980,6 +2225,106 @@ class MAVLink_swarmdrop_tick_message(MAVLink_message):
 setattr(MAVLink_swarmdrop_tick_message, "name", mavlink_msg_deprecated_name_property())
 
 
+class MAVLink_swarmdrop_plan_message(MAVLink_message):
+    """
+    The swarm's commanded plan: a whole snapshot made by the command
+    source (an operator's console, a scenario schedule), applied by
+    every agent at effective_usec. The newest seq wins: agents relay
+    the newest plan they hold, and a stale or reordered one never
+    undoes a newer one (docs/swarm.md).
+    """
+
+    id = MAVLINK_MSG_ID_SWARMDROP_PLAN
+    msgname = "SWARMDROP_PLAN"
+    fieldnames = ["effective_usec", "seq", "waypoints", "speed", "radius", "spacing", "rotation", "morph_time", "excluded", "landing", "kind", "n_waypoints", "shape", "flags", "n_vehicles", "start_velocity"]
+    ordered_fieldnames = ["effective_usec", "seq", "waypoints", "speed", "radius", "spacing", "rotation", "morph_time", "excluded", "landing", "kind", "n_waypoints", "shape", "flags", "n_vehicles", "start_velocity"]
+    fieldtypes = ["uint64_t", "uint32_t", "float", "float", "float", "float", "float", "float", "uint8_t", "uint8_t", "uint8_t", "uint8_t", "uint8_t", "uint8_t", "uint8_t", "float"]
+    fielddisplays_by_name: Dict[str, str] = {"flags": "bitmask"}
+    fieldenums_by_name: Dict[str, str] = {"kind": "SWARMDROP_COMMAND", "shape": "SWARMDROP_SHAPE", "flags": "SWARMDROP_PLAN_FLAGS"}
+    fieldunits_by_name: Dict[str, str] = {"effective_usec": "us", "waypoints": "m", "speed": "m/s", "radius": "m", "spacing": "m", "rotation": "rad", "morph_time": "s", "start_velocity": "m/s"}
+    native_format = bytearray(b"<QIffffffBBBBBBBf")
+    orders = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15]
+    lengths = [1, 1, 24, 1, 1, 1, 1, 1, 32, 32, 1, 1, 1, 1, 1, 3]
+    array_lengths = [0, 0, 24, 0, 0, 0, 0, 0, 32, 32, 0, 0, 0, 0, 0, 3]
+    crc_extra = 20
+    unpacker = struct.Struct("<QI24ffffff32B32BBBBBB3f")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, effective_usec: int, seq: int, waypoints: Sequence[float], speed: float, radius: float, spacing: float, rotation: float, morph_time: float, excluded: Sequence[int], landing: Sequence[int], kind: int, n_waypoints: int, shape: int, flags: int, n_vehicles: int, start_velocity: Sequence[float] = (0, 0, 0)):
+        MAVLink_message.__init__(self, MAVLink_swarmdrop_plan_message.id, MAVLink_swarmdrop_plan_message.msgname)
+        self._fieldnames = MAVLink_swarmdrop_plan_message.fieldnames
+        self._instance_field = MAVLink_swarmdrop_plan_message.instance_field
+        self._instance_offset = MAVLink_swarmdrop_plan_message.instance_offset
+        self.effective_usec = effective_usec
+        self.seq = seq
+        self.waypoints = waypoints
+        self.speed = speed
+        self.radius = radius
+        self.spacing = spacing
+        self.rotation = rotation
+        self.morph_time = morph_time
+        self.excluded = excluded
+        self.landing = landing
+        self.kind = kind
+        self.n_waypoints = n_waypoints
+        self.shape = shape
+        self.flags = flags
+        self.n_vehicles = n_vehicles
+        self.start_velocity = start_velocity
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.effective_usec, self.seq, self.waypoints[0], self.waypoints[1], self.waypoints[2], self.waypoints[3], self.waypoints[4], self.waypoints[5], self.waypoints[6], self.waypoints[7], self.waypoints[8], self.waypoints[9], self.waypoints[10], self.waypoints[11], self.waypoints[12], self.waypoints[13], self.waypoints[14], self.waypoints[15], self.waypoints[16], self.waypoints[17], self.waypoints[18], self.waypoints[19], self.waypoints[20], self.waypoints[21], self.waypoints[22], self.waypoints[23], self.speed, self.radius, self.spacing, self.rotation, self.morph_time, self.excluded[0], self.excluded[1], self.excluded[2], self.excluded[3], self.excluded[4], self.excluded[5], self.excluded[6], self.excluded[7], self.excluded[8], self.excluded[9], self.excluded[10], self.excluded[11], self.excluded[12], self.excluded[13], self.excluded[14], self.excluded[15], self.excluded[16], self.excluded[17], self.excluded[18], self.excluded[19], self.excluded[20], self.excluded[21], self.excluded[22], self.excluded[23], self.excluded[24], self.excluded[25], self.excluded[26], self.excluded[27], self.excluded[28], self.excluded[29], self.excluded[30], self.excluded[31], self.landing[0], self.landing[1], self.landing[2], self.landing[3], self.landing[4], self.landing[5], self.landing[6], self.landing[7], self.landing[8], self.landing[9], self.landing[10], self.landing[11], self.landing[12], self.landing[13], self.landing[14], self.landing[15], self.landing[16], self.landing[17], self.landing[18], self.landing[19], self.landing[20], self.landing[21], self.landing[22], self.landing[23], self.landing[24], self.landing[25], self.landing[26], self.landing[27], self.landing[28], self.landing[29], self.landing[30], self.landing[31], self.kind, self.n_waypoints, self.shape, self.flags, self.n_vehicles, self.start_velocity[0], self.start_velocity[1], self.start_velocity[2]), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_swarmdrop_plan_message, "name", mavlink_msg_deprecated_name_property())
+
+
+class MAVLink_swarmdrop_slots_message(MAVLink_message):
+    """
+    The slot table of a SWARMDROP_PLAN (computed by its source: few
+    crossings, little travel), in chunks: vehicles first .. first +
+    count - 1. A plan applies once every chunk of its seq is held.
+    """
+
+    id = MAVLINK_MSG_ID_SWARMDROP_SLOTS
+    msgname = "SWARMDROP_SLOTS"
+    fieldnames = ["seq", "first", "count", "slot"]
+    ordered_fieldnames = ["seq", "first", "count", "slot"]
+    fieldtypes = ["uint32_t", "uint8_t", "uint8_t", "uint8_t"]
+    fielddisplays_by_name: Dict[str, str] = {}
+    fieldenums_by_name: Dict[str, str] = {}
+    fieldunits_by_name: Dict[str, str] = {}
+    native_format = bytearray(b"<IBBB")
+    orders = [0, 1, 2, 3]
+    lengths = [1, 1, 1, 200]
+    array_lengths = [0, 0, 0, 200]
+    crc_extra = 126
+    unpacker = struct.Struct("<IBB200B")
+    instance_field = None
+    instance_offset = -1
+
+    def __init__(self, seq: int, first: int, count: int, slot: Sequence[int]):
+        MAVLink_message.__init__(self, MAVLink_swarmdrop_slots_message.id, MAVLink_swarmdrop_slots_message.msgname)
+        self._fieldnames = MAVLink_swarmdrop_slots_message.fieldnames
+        self._instance_field = MAVLink_swarmdrop_slots_message.instance_field
+        self._instance_offset = MAVLink_swarmdrop_slots_message.instance_offset
+        self.seq = seq
+        self.first = first
+        self.count = count
+        self.slot = slot
+
+    def pack(self, mav: "MAVLink", force_mavlink1: bool = False) -> bytes:
+        return self._pack(mav, self.crc_extra, self.unpacker.pack(self.seq, self.first, self.count, self.slot[0], self.slot[1], self.slot[2], self.slot[3], self.slot[4], self.slot[5], self.slot[6], self.slot[7], self.slot[8], self.slot[9], self.slot[10], self.slot[11], self.slot[12], self.slot[13], self.slot[14], self.slot[15], self.slot[16], self.slot[17], self.slot[18], self.slot[19], self.slot[20], self.slot[21], self.slot[22], self.slot[23], self.slot[24], self.slot[25], self.slot[26], self.slot[27], self.slot[28], self.slot[29], self.slot[30], self.slot[31], self.slot[32], self.slot[33], self.slot[34], self.slot[35], self.slot[36], self.slot[37], self.slot[38], self.slot[39], self.slot[40], self.slot[41], self.slot[42], self.slot[43], self.slot[44], self.slot[45], self.slot[46], self.slot[47], self.slot[48], self.slot[49], self.slot[50], self.slot[51], self.slot[52], self.slot[53], self.slot[54], self.slot[55], self.slot[56], self.slot[57], self.slot[58], self.slot[59], self.slot[60], self.slot[61], self.slot[62], self.slot[63], self.slot[64], self.slot[65], self.slot[66], self.slot[67], self.slot[68], self.slot[69], self.slot[70], self.slot[71], self.slot[72], self.slot[73], self.slot[74], self.slot[75], self.slot[76], self.slot[77], self.slot[78], self.slot[79], self.slot[80], self.slot[81], self.slot[82], self.slot[83], self.slot[84], self.slot[85], self.slot[86], self.slot[87], self.slot[88], self.slot[89], self.slot[90], self.slot[91], self.slot[92], self.slot[93], self.slot[94], self.slot[95], self.slot[96], self.slot[97], self.slot[98], self.slot[99], self.slot[100], self.slot[101], self.slot[102], self.slot[103], self.slot[104], self.slot[105], self.slot[106], self.slot[107], self.slot[108], self.slot[109], self.slot[110], self.slot[111], self.slot[112], self.slot[113], self.slot[114], self.slot[115], self.slot[116], self.slot[117], self.slot[118], self.slot[119], self.slot[120], self.slot[121], self.slot[122], self.slot[123], self.slot[124], self.slot[125], self.slot[126], self.slot[127], self.slot[128], self.slot[129], self.slot[130], self.slot[131], self.slot[132], self.slot[133], self.slot[134], self.slot[135], self.slot[136], self.slot[137], self.slot[138], self.slot[139], self.slot[140], self.slot[141], self.slot[142], self.slot[143], self.slot[144], self.slot[145], self.slot[146], self.slot[147], self.slot[148], self.slot[149], self.slot[150], self.slot[151], self.slot[152], self.slot[153], self.slot[154], self.slot[155], self.slot[156], self.slot[157], self.slot[158], self.slot[159], self.slot[160], self.slot[161], self.slot[162], self.slot[163], self.slot[164], self.slot[165], self.slot[166], self.slot[167], self.slot[168], self.slot[169], self.slot[170], self.slot[171], self.slot[172], self.slot[173], self.slot[174], self.slot[175], self.slot[176], self.slot[177], self.slot[178], self.slot[179], self.slot[180], self.slot[181], self.slot[182], self.slot[183], self.slot[184], self.slot[185], self.slot[186], self.slot[187], self.slot[188], self.slot[189], self.slot[190], self.slot[191], self.slot[192], self.slot[193], self.slot[194], self.slot[195], self.slot[196], self.slot[197], self.slot[198], self.slot[199]), force_mavlink1=force_mavlink1)
+
+
+# Define name on the class for backwards compatibility (it is now msgname).
+# Done with setattr to hide the class variable from mypy.
+setattr(MAVLink_swarmdrop_slots_message, "name", mavlink_msg_deprecated_name_property())
+
+
 mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_HEARTBEAT: MAVLink_heartbeat_message,
     MAVLINK_MSG_ID_SYS_STATUS: MAVLink_sys_status_message,
@@ -1994,6 +2339,8 @@ mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_ATTITUDE_QUATERNION: MAVLink_attitude_quaternion_message,
     MAVLINK_MSG_ID_LOCAL_POSITION_NED: MAVLink_local_position_ned_message,
     MAVLINK_MSG_ID_GLOBAL_POSITION_INT: MAVLink_global_position_int_message,
+    MAVLINK_MSG_ID_MISSION_REQUEST_LIST: MAVLink_mission_request_list_message,
+    MAVLINK_MSG_ID_MISSION_COUNT: MAVLink_mission_count_message,
     MAVLINK_MSG_ID_SET_GPS_GLOBAL_ORIGIN: MAVLink_set_gps_global_origin_message,
     MAVLINK_MSG_ID_GPS_GLOBAL_ORIGIN: MAVLink_gps_global_origin_message,
     MAVLINK_MSG_ID_COMMAND_INT: MAVLink_command_int_message,
@@ -2003,7 +2350,9 @@ mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_ATTITUDE_TARGET: MAVLink_attitude_target_message,
     MAVLINK_MSG_ID_SET_POSITION_TARGET_LOCAL_NED: MAVLink_set_position_target_local_ned_message,
     MAVLINK_MSG_ID_POSITION_TARGET_LOCAL_NED: MAVLink_position_target_local_ned_message,
+    MAVLINK_MSG_ID_FILE_TRANSFER_PROTOCOL: MAVLink_file_transfer_protocol_message,
     MAVLINK_MSG_ID_TIMESYNC: MAVLink_timesync_message,
+    MAVLINK_MSG_ID_BATTERY_STATUS: MAVLink_battery_status_message,
     MAVLINK_MSG_ID_AUTOPILOT_VERSION: MAVLink_autopilot_version_message,
     MAVLINK_MSG_ID_HOME_POSITION: MAVLink_home_position_message,
     MAVLINK_MSG_ID_MESSAGE_INTERVAL: MAVLink_message_interval_message,
@@ -2013,6 +2362,8 @@ mavlink_map: Dict[int, Type[MAVLink_message]] = {
     MAVLINK_MSG_ID_UTM_GLOBAL_POSITION: MAVLink_utm_global_position_message,
     MAVLINK_MSG_ID_SWARMDROP_STATE: MAVLink_swarmdrop_state_message,
     MAVLINK_MSG_ID_SWARMDROP_TICK: MAVLink_swarmdrop_tick_message,
+    MAVLINK_MSG_ID_SWARMDROP_PLAN: MAVLink_swarmdrop_plan_message,
+    MAVLINK_MSG_ID_SWARMDROP_SLOTS: MAVLink_swarmdrop_slots_message,
 }
 
 
@@ -2903,6 +3254,58 @@ class MAVLink(object):
         """
         self.send(self.global_position_int_encode(time_boot_ms, lat, lon, alt, relative_alt, vx, vy, vz, hdg), force_mavlink1=force_mavlink1)
 
+    def mission_request_list_encode(self, target_system: int, target_component: int, mission_type: int = 0) -> MAVLink_mission_request_list_message:
+        """
+        Request the overall list of mission items from the system/component.
+
+        target_system             : System ID (type:uint8_t)
+        target_component          : Component ID (type:uint8_t)
+        mission_type              : Mission type. (type:uint8_t)
+
+        """
+        return MAVLink_mission_request_list_message(target_system, target_component, mission_type)
+
+    def mission_request_list_send(self, target_system: int, target_component: int, mission_type: int = 0, force_mavlink1: bool = False) -> None:
+        """
+        Request the overall list of mission items from the system/component.
+
+        target_system             : System ID (type:uint8_t)
+        target_component          : Component ID (type:uint8_t)
+        mission_type              : Mission type. (type:uint8_t)
+
+        """
+        self.send(self.mission_request_list_encode(target_system, target_component, mission_type), force_mavlink1=force_mavlink1)
+
+    def mission_count_encode(self, target_system: int, target_component: int, count: int, mission_type: int = 0) -> MAVLink_mission_count_message:
+        """
+        This message is emitted as response to MISSION_REQUEST_LIST by the MAV
+        and to initiate a write transaction. The GCS can then request
+        the individual mission item based on the knowledge of the
+        total number of waypoints.
+
+        target_system             : System ID (type:uint8_t)
+        target_component          : Component ID (type:uint8_t)
+        count                     : Number of mission items in the sequence (type:uint16_t)
+        mission_type              : Mission type. (type:uint8_t)
+
+        """
+        return MAVLink_mission_count_message(target_system, target_component, count, mission_type)
+
+    def mission_count_send(self, target_system: int, target_component: int, count: int, mission_type: int = 0, force_mavlink1: bool = False) -> None:
+        """
+        This message is emitted as response to MISSION_REQUEST_LIST by the MAV
+        and to initiate a write transaction. The GCS can then request
+        the individual mission item based on the knowledge of the
+        total number of waypoints.
+
+        target_system             : System ID (type:uint8_t)
+        target_component          : Component ID (type:uint8_t)
+        count                     : Number of mission items in the sequence (type:uint16_t)
+        mission_type              : Mission type. (type:uint8_t)
+
+        """
+        self.send(self.mission_count_encode(target_system, target_component, count, mission_type), force_mavlink1=force_mavlink1)
+
     def set_gps_global_origin_encode(self, target_system: int, latitude: int, longitude: int, altitude: int, time_usec: int = 0) -> MAVLink_set_gps_global_origin_message:
         """
         Sets the GPS coordinates of the vehicle local origin (0,0,0) position.
@@ -3273,6 +3676,32 @@ class MAVLink(object):
         """
         self.send(self.position_target_local_ned_encode(time_boot_ms, coordinate_frame, type_mask, x, y, z, vx, vy, vz, afx, afy, afz, yaw, yaw_rate), force_mavlink1=force_mavlink1)
 
+    def file_transfer_protocol_encode(self, target_network: int, target_system: int, target_component: int, payload: Sequence[int]) -> MAVLink_file_transfer_protocol_message:
+        """
+        File transfer protocol message:
+        https://mavlink.io/en/services/ftp.html.
+
+        target_network            : Network ID (0 for broadcast) (type:uint8_t)
+        target_system             : System ID (0 for broadcast) (type:uint8_t)
+        target_component          : Component ID (0 for broadcast) (type:uint8_t)
+        payload                   : Variable length payload. The length is defined by the remaining message length when subtracting the header and other fields. The content/format of this block is defined in https://mavlink.io/en/services/ftp.html. (type:uint8_t)
+
+        """
+        return MAVLink_file_transfer_protocol_message(target_network, target_system, target_component, payload)
+
+    def file_transfer_protocol_send(self, target_network: int, target_system: int, target_component: int, payload: Sequence[int], force_mavlink1: bool = False) -> None:
+        """
+        File transfer protocol message:
+        https://mavlink.io/en/services/ftp.html.
+
+        target_network            : Network ID (0 for broadcast) (type:uint8_t)
+        target_system             : System ID (0 for broadcast) (type:uint8_t)
+        target_component          : Component ID (0 for broadcast) (type:uint8_t)
+        payload                   : Variable length payload. The length is defined by the remaining message length when subtracting the header and other fields. The content/format of this block is defined in https://mavlink.io/en/services/ftp.html. (type:uint8_t)
+
+        """
+        self.send(self.file_transfer_protocol_encode(target_network, target_system, target_component, payload), force_mavlink1=force_mavlink1)
+
     def timesync_encode(self, tc1: int, ts1: int) -> MAVLink_timesync_message:
         """
         Time synchronization message.         The message is used for both
@@ -3330,6 +3759,50 @@ class MAVLink(object):
 
         """
         self.send(self.timesync_encode(tc1, ts1), force_mavlink1=force_mavlink1)
+
+    def battery_status_encode(self, id: int, battery_function: int, type: int, temperature: int, voltages: Sequence[int], current_battery: int, current_consumed: int, energy_consumed: int, battery_remaining: int, time_remaining: int = 0, charge_state: int = 0, voltages_ext: Sequence[int] = (0, 0, 0, 0), mode: int = 0, fault_bitmask: int = 0) -> MAVLink_battery_status_message:
+        """
+        Battery information
+
+        id                        : Battery ID (type:uint8_t)
+        battery_function          : Function of the battery (type:uint8_t)
+        type                      : Type (chemistry) of the battery (type:uint8_t)
+        temperature               : Temperature of the battery. INT16_MAX for unknown temperature. [cdegC] (type:int16_t)
+        voltages                  : Battery voltage of cells 1 to 10 (see voltages_ext for cells 11-14). Cells in this field above the valid cell count for this battery should have the UINT16_MAX value. If individual cell voltages are unknown or not measured for this battery, then the overall battery voltage should be filled in cell 0, with all others set to UINT16_MAX. If the voltage of the battery is greater than (UINT16_MAX - 1), then cell 0 should be set to (UINT16_MAX - 1), and cell 1 to the remaining voltage. This can be extended to multiple cells if the total voltage is greater than 2 * (UINT16_MAX - 1). [mV] (type:uint16_t)
+        current_battery           : Battery current, -1: autopilot does not measure the current. Value may overflow/rollover for very high currents (> 327.67A) [cA] (type:int16_t)
+        current_consumed          : Consumed charge, -1: autopilot does not provide consumption estimate [mAh] (type:int32_t)
+        energy_consumed           : Consumed energy, -1: autopilot does not provide energy consumption estimate [hJ] (type:int32_t)
+        battery_remaining         : Remaining battery energy. Values: [0-100], -1: autopilot does not estimate the remaining battery. [%] (type:int8_t)
+        time_remaining            : Remaining battery time, 0: autopilot does not provide remaining battery time estimate [s] (type:int32_t)
+        charge_state              : State for extent of discharge, provided by autopilot for warning or external reactions (type:uint8_t)
+        voltages_ext              : Battery voltages for cells 11 to 14. Cells above the valid cell count for this battery should have a value of 0, where zero indicates not supported (note, this is different than for the voltages field and allows empty byte truncation). If the measured value is 0 then 1 should be sent instead. [mV] (type:uint16_t)
+        mode                      : Battery mode. Default (0) is that battery mode reporting is not supported or battery is in normal-use mode. (type:uint8_t)
+        fault_bitmask             : Fault/health indications. These should be set when charge_state is MAV_BATTERY_CHARGE_STATE_FAILED or MAV_BATTERY_CHARGE_STATE_UNHEALTHY (if not, fault reporting is not supported). (type:uint32_t)
+
+        """
+        return MAVLink_battery_status_message(id, battery_function, type, temperature, voltages, current_battery, current_consumed, energy_consumed, battery_remaining, time_remaining, charge_state, voltages_ext, mode, fault_bitmask)
+
+    def battery_status_send(self, id: int, battery_function: int, type: int, temperature: int, voltages: Sequence[int], current_battery: int, current_consumed: int, energy_consumed: int, battery_remaining: int, time_remaining: int = 0, charge_state: int = 0, voltages_ext: Sequence[int] = (0, 0, 0, 0), mode: int = 0, fault_bitmask: int = 0, force_mavlink1: bool = False) -> None:
+        """
+        Battery information
+
+        id                        : Battery ID (type:uint8_t)
+        battery_function          : Function of the battery (type:uint8_t)
+        type                      : Type (chemistry) of the battery (type:uint8_t)
+        temperature               : Temperature of the battery. INT16_MAX for unknown temperature. [cdegC] (type:int16_t)
+        voltages                  : Battery voltage of cells 1 to 10 (see voltages_ext for cells 11-14). Cells in this field above the valid cell count for this battery should have the UINT16_MAX value. If individual cell voltages are unknown or not measured for this battery, then the overall battery voltage should be filled in cell 0, with all others set to UINT16_MAX. If the voltage of the battery is greater than (UINT16_MAX - 1), then cell 0 should be set to (UINT16_MAX - 1), and cell 1 to the remaining voltage. This can be extended to multiple cells if the total voltage is greater than 2 * (UINT16_MAX - 1). [mV] (type:uint16_t)
+        current_battery           : Battery current, -1: autopilot does not measure the current. Value may overflow/rollover for very high currents (> 327.67A) [cA] (type:int16_t)
+        current_consumed          : Consumed charge, -1: autopilot does not provide consumption estimate [mAh] (type:int32_t)
+        energy_consumed           : Consumed energy, -1: autopilot does not provide energy consumption estimate [hJ] (type:int32_t)
+        battery_remaining         : Remaining battery energy. Values: [0-100], -1: autopilot does not estimate the remaining battery. [%] (type:int8_t)
+        time_remaining            : Remaining battery time, 0: autopilot does not provide remaining battery time estimate [s] (type:int32_t)
+        charge_state              : State for extent of discharge, provided by autopilot for warning or external reactions (type:uint8_t)
+        voltages_ext              : Battery voltages for cells 11 to 14. Cells above the valid cell count for this battery should have a value of 0, where zero indicates not supported (note, this is different than for the voltages field and allows empty byte truncation). If the measured value is 0 then 1 should be sent instead. [mV] (type:uint16_t)
+        mode                      : Battery mode. Default (0) is that battery mode reporting is not supported or battery is in normal-use mode. (type:uint8_t)
+        fault_bitmask             : Fault/health indications. These should be set when charge_state is MAV_BATTERY_CHARGE_STATE_FAILED or MAV_BATTERY_CHARGE_STATE_UNHEALTHY (if not, fault reporting is not supported). (type:uint32_t)
+
+        """
+        self.send(self.battery_status_encode(id, battery_function, type, temperature, voltages, current_battery, current_consumed, energy_consumed, battery_remaining, time_remaining, charge_state, voltages_ext, mode, fault_bitmask), force_mavlink1=force_mavlink1)
 
     def autopilot_version_encode(self, capabilities: int, flight_sw_version: int, middleware_sw_version: int, os_sw_version: int, board_version: int, flight_custom_version: Sequence[int], middleware_custom_version: Sequence[int], os_custom_version: Sequence[int], vendor_id: int, product_id: int, uid: int, uid2: Sequence[int] = (0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0)) -> MAVLink_autopilot_version_message:
         """
@@ -3597,7 +4070,7 @@ class MAVLink(object):
         """
         self.send(self.utm_global_position_encode(time, uas_id, lat, lon, alt, relative_alt, vx, vy, vz, h_acc, v_acc, vel_acc, next_lat, next_lon, next_alt, update_rate, flight_state, flags), force_mavlink1=force_mavlink1)
 
-    def swarmdrop_state_encode(self, time_usec: int, t_go_usec: int, x: float, y: float, z: float, vx: float, vy: float, vz: float, q: Sequence[float], phase: int, flags: int, vehicle_id: int) -> MAVLink_swarmdrop_state_message:
+    def swarmdrop_state_encode(self, time_usec: int, t_go_usec: int, x: float, y: float, z: float, vx: float, vy: float, vz: float, q: Sequence[float], phase: int, flags: int, vehicle_id: int, plan_seq: int = 0) -> MAVLink_swarmdrop_state_message:
         """
         One vehicle's state, broadcast to its swarm peers. Position and
         velocity are in the mission NED frame shared by the swarm, not
@@ -3615,11 +4088,12 @@ class MAVLink(object):
         phase                     : Mission phase. (type:uint8_t, values:SWARMDROP_PHASE)
         flags                     : State flags. (type:uint8_t, values:SWARMDROP_STATE_FLAGS)
         vehicle_id                : 0-based index of the vehicle in the mission (its MAVLink system id may differ). (type:uint8_t)
+        plan_seq                  : seq of the newest SWARMDROP_PLAN the vehicle has applied (0: the mission's own plan). (type:uint32_t)
 
         """
-        return MAVLink_swarmdrop_state_message(time_usec, t_go_usec, x, y, z, vx, vy, vz, q, phase, flags, vehicle_id)
+        return MAVLink_swarmdrop_state_message(time_usec, t_go_usec, x, y, z, vx, vy, vz, q, phase, flags, vehicle_id, plan_seq)
 
-    def swarmdrop_state_send(self, time_usec: int, t_go_usec: int, x: float, y: float, z: float, vx: float, vy: float, vz: float, q: Sequence[float], phase: int, flags: int, vehicle_id: int, force_mavlink1: bool = False) -> None:
+    def swarmdrop_state_send(self, time_usec: int, t_go_usec: int, x: float, y: float, z: float, vx: float, vy: float, vz: float, q: Sequence[float], phase: int, flags: int, vehicle_id: int, plan_seq: int = 0, force_mavlink1: bool = False) -> None:
         """
         One vehicle's state, broadcast to its swarm peers. Position and
         velocity are in the mission NED frame shared by the swarm, not
@@ -3637,9 +4111,10 @@ class MAVLink(object):
         phase                     : Mission phase. (type:uint8_t, values:SWARMDROP_PHASE)
         flags                     : State flags. (type:uint8_t, values:SWARMDROP_STATE_FLAGS)
         vehicle_id                : 0-based index of the vehicle in the mission (its MAVLink system id may differ). (type:uint8_t)
+        plan_seq                  : seq of the newest SWARMDROP_PLAN the vehicle has applied (0: the mission's own plan). (type:uint32_t)
 
         """
-        self.send(self.swarmdrop_state_encode(time_usec, t_go_usec, x, y, z, vx, vy, vz, q, phase, flags, vehicle_id), force_mavlink1=force_mavlink1)
+        self.send(self.swarmdrop_state_encode(time_usec, t_go_usec, x, y, z, vx, vy, vz, q, phase, flags, vehicle_id, plan_seq), force_mavlink1=force_mavlink1)
 
     def swarmdrop_tick_encode(self, time_usec: int) -> MAVLink_swarmdrop_tick_message:
         """
@@ -3662,3 +4137,89 @@ class MAVLink(object):
 
         """
         self.send(self.swarmdrop_tick_encode(time_usec), force_mavlink1=force_mavlink1)
+
+    def swarmdrop_plan_encode(self, effective_usec: int, seq: int, waypoints: Sequence[float], speed: float, radius: float, spacing: float, rotation: float, morph_time: float, excluded: Sequence[int], landing: Sequence[int], kind: int, n_waypoints: int, shape: int, flags: int, n_vehicles: int, start_velocity: Sequence[float] = (0, 0, 0)) -> MAVLink_swarmdrop_plan_message:
+        """
+        The swarm's commanded plan: a whole snapshot made by the command
+        source (an operator's console, a scenario schedule), applied
+        by every agent at effective_usec. The newest seq wins: agents
+        relay the newest plan they hold, and a stale or reordered one
+        never undoes a newer one (docs/swarm.md).
+
+        effective_usec            : When every agent applies the plan (UNIX epoch time, as SWARMDROP_STATE). [us] (type:uint64_t)
+        seq                       : Plan number, increasing; 0 is never sent (the mission's own plan). (type:uint32_t)
+        waypoints                 : Formation-centre waypoints x, y, z (mission NED), the first being the centre at effective_usec. [m] (type:float)
+        speed                     : Centre speed along the waypoints. [m/s] (type:float)
+        radius                    : Circle or shell radius. [m] (type:float)
+        spacing                   : Line, grid or wedge spacing. [m] (type:float)
+        rotation                  : Bearing of the shape's forward axis, clockwise from north (absolute: not relative to the mission's yaw or the direction of travel). [rad] (type:float)
+        morph_time                : The formation moves from its old slots to the new ones over this time. [s] (type:float)
+        excluded                  : Bit k (byte k // 8, bit k % 8): vehicle k is excluded. (type:uint8_t)
+        landing                   : Bit k: vehicle k lands. (type:uint8_t)
+        kind                      : Command that made this plan. (type:uint8_t, values:SWARMDROP_COMMAND)
+        n_waypoints               : Number of waypoints used. (type:uint8_t)
+        shape                     : Formation shape. (type:uint8_t, values:SWARMDROP_SHAPE)
+        flags                     : Plan flags. (type:uint8_t, values:SWARMDROP_PLAN_FLAGS)
+        n_vehicles                : Vehicles in the mission (the slot table's length). (type:uint8_t)
+        start_velocity            : Velocity of the formation centre at effective_usec (mission NED); the centre's path blends from it (zero: from rest, as before this field; zeros are truncated on the wire). [m/s] (type:float)
+
+        """
+        return MAVLink_swarmdrop_plan_message(effective_usec, seq, waypoints, speed, radius, spacing, rotation, morph_time, excluded, landing, kind, n_waypoints, shape, flags, n_vehicles, start_velocity)
+
+    def swarmdrop_plan_send(self, effective_usec: int, seq: int, waypoints: Sequence[float], speed: float, radius: float, spacing: float, rotation: float, morph_time: float, excluded: Sequence[int], landing: Sequence[int], kind: int, n_waypoints: int, shape: int, flags: int, n_vehicles: int, start_velocity: Sequence[float] = (0, 0, 0), force_mavlink1: bool = False) -> None:
+        """
+        The swarm's commanded plan: a whole snapshot made by the command
+        source (an operator's console, a scenario schedule), applied
+        by every agent at effective_usec. The newest seq wins: agents
+        relay the newest plan they hold, and a stale or reordered one
+        never undoes a newer one (docs/swarm.md).
+
+        effective_usec            : When every agent applies the plan (UNIX epoch time, as SWARMDROP_STATE). [us] (type:uint64_t)
+        seq                       : Plan number, increasing; 0 is never sent (the mission's own plan). (type:uint32_t)
+        waypoints                 : Formation-centre waypoints x, y, z (mission NED), the first being the centre at effective_usec. [m] (type:float)
+        speed                     : Centre speed along the waypoints. [m/s] (type:float)
+        radius                    : Circle or shell radius. [m] (type:float)
+        spacing                   : Line, grid or wedge spacing. [m] (type:float)
+        rotation                  : Bearing of the shape's forward axis, clockwise from north (absolute: not relative to the mission's yaw or the direction of travel). [rad] (type:float)
+        morph_time                : The formation moves from its old slots to the new ones over this time. [s] (type:float)
+        excluded                  : Bit k (byte k // 8, bit k % 8): vehicle k is excluded. (type:uint8_t)
+        landing                   : Bit k: vehicle k lands. (type:uint8_t)
+        kind                      : Command that made this plan. (type:uint8_t, values:SWARMDROP_COMMAND)
+        n_waypoints               : Number of waypoints used. (type:uint8_t)
+        shape                     : Formation shape. (type:uint8_t, values:SWARMDROP_SHAPE)
+        flags                     : Plan flags. (type:uint8_t, values:SWARMDROP_PLAN_FLAGS)
+        n_vehicles                : Vehicles in the mission (the slot table's length). (type:uint8_t)
+        start_velocity            : Velocity of the formation centre at effective_usec (mission NED); the centre's path blends from it (zero: from rest, as before this field; zeros are truncated on the wire). [m/s] (type:float)
+
+        """
+        self.send(self.swarmdrop_plan_encode(effective_usec, seq, waypoints, speed, radius, spacing, rotation, morph_time, excluded, landing, kind, n_waypoints, shape, flags, n_vehicles, start_velocity), force_mavlink1=force_mavlink1)
+
+    def swarmdrop_slots_encode(self, seq: int, first: int, count: int, slot: Sequence[int]) -> MAVLink_swarmdrop_slots_message:
+        """
+        The slot table of a SWARMDROP_PLAN (computed by its source: few
+        crossings, little travel), in chunks: vehicles first .. first
+        + count - 1. A plan applies once every chunk of its seq is
+        held.
+
+        seq                       : seq of the plan this table belongs to. (type:uint32_t)
+        first                     : First vehicle of this chunk. (type:uint8_t)
+        count                     : Vehicles in this chunk. (type:uint8_t)
+        slot                      : Slot index of each vehicle (255: no slot, excluded). (type:uint8_t)
+
+        """
+        return MAVLink_swarmdrop_slots_message(seq, first, count, slot)
+
+    def swarmdrop_slots_send(self, seq: int, first: int, count: int, slot: Sequence[int], force_mavlink1: bool = False) -> None:
+        """
+        The slot table of a SWARMDROP_PLAN (computed by its source: few
+        crossings, little travel), in chunks: vehicles first .. first
+        + count - 1. A plan applies once every chunk of its seq is
+        held.
+
+        seq                       : seq of the plan this table belongs to. (type:uint32_t)
+        first                     : First vehicle of this chunk. (type:uint8_t)
+        count                     : Vehicles in this chunk. (type:uint8_t)
+        slot                      : Slot index of each vehicle (255: no slot, excluded). (type:uint8_t)
+
+        """
+        self.send(self.swarmdrop_slots_encode(seq, first, count, slot), force_mavlink1=force_mavlink1)
