@@ -14,8 +14,11 @@ Phases and their transitions (docs/agent.md):
                             have held for stable_dwell_s; until then the agent
                             commands nothing: the autopilot owns the recovery;
     ASSEMBLE  -> TRANSIT    at t_go, agreed by the swarm (docs/swarm.md);
-    TRANSIT   -> HOVER      when the formation centre reaches the last waypoint;
+    TRANSIT   -> HOVER      when the formation centre comes to rest at the end of its path
+                            (the mission's, or a swarm command's plan: docs/swarm.md);
+    HOVER     -> TRANSIT    when a newer plan moves the centre again (GOTO, RESUME, RTL);
     HOVER     -> LAND       land_after_hover_s after hover began, if configured;
+    any formation phase -> LAND  at the handover time a LAND or RTL plan gives the vehicle;
     any of ASSEMBLE..LAND -> FAILED  the vehicle has lost control: tilt beyond
                             lost_tilt_deg for lost_dwell_s (PX4's failure detector
                             thresholds). FAILED is final: the agent commands nothing
@@ -32,15 +35,31 @@ from typing import Callable
 
 import numpy as np
 
+from companion.commands.book import PlanBook, RefGroup
+from companion.commands.track import LAND as ROLE_LAND
 from companion.control.apf import clip_sum_rows, pair_repulsion_rows, segment_repulsion_rows
 from companion.control.formation import consensus_rows, gains_vector
 from companion.control.kernel import kernel
 from companion.mission import Mission
 from companion.state import FleetSetpoint
-from companion.swarm import FLAG_ASSEMBLED, FLAG_OWN_VALID, FLAG_READY, SwarmStates, SwarmView
+from companion.swarm import (
+    FLAG_ASSEMBLED,
+    FLAG_HANDED_OVER,
+    FLAG_ID_CONFLICT,
+    FLAG_OWN_VALID,
+    FLAG_READY,
+    Intruders,
+    SwarmStates,
+    SwarmView,
+)
 
 
 class Phase(IntEnum):
+    """Flight phase of one vehicle as its agent sees it; the order is the order of a
+    normal flight, FAILED last (table in docs/agent.md, "Phases"). The value is what the
+    swarm link carries and the recorder logs (int8); ASSEMBLE, TRANSIT and HOVER are the
+    formation phases (FORMATION_PHASES)."""
+
     LAUNCH = 0
     STABILISE = 1
     ASSEMBLE = 2
@@ -174,6 +193,22 @@ def finish_rows(rows, p, v, acc, h_pos, h_vel, valid, ready, phase, state_kind, 
         flags[i] = f
 
 
+@dataclass(frozen=True)
+class GoDecision:
+    """One vehicle proposed the transit start (docs/swarm.md, "Agreeing on the transit start").
+
+    Attributes:
+        t_s: when, mission time, s. vehicle_id: who. t_go_s: the start proposed, s.
+        left_waiting: vehicles heard alive but not assembled that the proposal did not wait
+            for (the stall rule); empty when everyone heard was assembled.
+    """
+
+    t_s: float
+    vehicle_id: int
+    t_go_s: float
+    left_waiting: tuple[int, ...]
+
+
 @dataclass
 class OwnState:
     """What an agent knows of its own n vehicles, first hand (from their autopilots).
@@ -199,7 +234,7 @@ class OwnState:
 @dataclass(frozen=True)
 class AgentKernels:
     """The per-vehicle loops the agent calls: plain Python by default (onboard);
-    the simulator passes numba-compiled twins of the same functions (sim_bridge.jit)."""
+    the simulator passes numba-compiled twins of the same functions (sim_bridge.world.jit)."""
 
     consensus_rows: Callable = consensus_rows
     neighbour_sets_rows: Callable = neighbour_sets_rows
@@ -222,6 +257,9 @@ class AgentOutput:
         own_valid: (n,) bool, the own state was finite and fresh.
         slot_ned_m: (n, 3) each vehicle's formation slot h_i(t) (NaN before ASSEMBLE).
         published: the n states to share with the swarm.
+        plan_seq: (n,) seq of the swarm plan each vehicle flies (0: the mission's own).
+        handed_over: (n,) bool, an ABORT plan handed the vehicle to its autopilot's own Hold:
+            the agent sends nothing (its node switches the autopilot to Hold).
     """
 
     setpoint: FleetSetpoint
@@ -231,6 +269,8 @@ class AgentOutput:
     own_valid: np.ndarray
     slot_ned_m: np.ndarray
     published: SwarmStates = field(repr=False)
+    plan_seq: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    handed_over: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
 
 
 class Agent:
@@ -254,8 +294,26 @@ class Agent:
         self.assembled = np.zeros(n, dtype=bool)
         self.t_go_s = np.full(n, np.nan)
         self.go_ready_since_s = np.full(n, np.nan)
+        self.go_stall_since_s = np.full(n, np.nan)
+        """(n,) since when every vehicle this one still awaits has been trying to assemble
+        (the stall rule's clock; NaN: not so now)."""
+        self.go_decisions: list[GoDecision] = []
+        """Transit starts proposed by this agent's vehicles, newest last (the caller logs
+        and clears them: sans-IO)."""
         self.lost_since_s = np.full(n, np.nan)
         self._lost_pending = False
+        self.plans = PlanBook(mission, n)
+        """The swarm plans each own vehicle holds (companion.commands: receive what the link
+        brings with `plans.receive(rows, plan)`; step applies them at their effective time)."""
+        self.handed_over = np.zeros(n, bool)
+        """(n,) an ABORT plan handed the vehicle to its autopilot: for good (docs/swarm.md)."""
+        self._any_handed_over = False
+        self._never = np.full(n, np.nan)
+        self._groups: list[RefGroup] = []
+        self.slot_integral_ms = np.zeros((n, 3))
+        """(n, 3) integral of each vehicle's own slot-position error, m s (docs/formation.md,
+        "Integral action"); kept across phases: it is a property of the vehicle (its bias)."""
+        self._t_prev_s = math.nan
         cfg = mission.cfg
         self._k = gains_vector(cfg.consensus)
         self._cos_tilt_max = math.cos(math.radians(cfg.phases.stable_tilt_deg))
@@ -268,7 +326,10 @@ class Agent:
         self._no_rows = np.empty((0, 3))
 
     # ------------------------------------------------------------------ phases
-    def _advance_phases(self, t_s: float, own: OwnState, valid: np.ndarray, cos_tilt: np.ndarray) -> None:
+    def _advance_phases(self, t_s: float, own: OwnState, valid: np.ndarray, cos_tilt: np.ndarray,
+                        centre_end_s: np.ndarray, land_at_s: np.ndarray) -> None:
+        """Phase transitions (module docstring). centre_end_s (n,): when each row's centre
+        comes to rest (its plan's path); land_at_s (n,): when its plan hands it to LAND (NaN)."""
         ph = self.mission.cfg.phases
         phase = self.phase
         if phase.min() <= _STABILISE:  # (skipped once every own vehicle flies formation)
@@ -284,11 +345,14 @@ class Agent:
         go = self.t_go_s
         has_go = ~np.isnan(go)
         if has_go.any():
-            t_hover = go + self.mission.path.duration_s
+            t_hover = centre_end_s
             phase[(phase == _ASSEMBLE) & has_go & (t_s >= go)] = _TRANSIT
             phase[(phase == _TRANSIT) & (t_s >= t_hover)] = _HOVER
+            phase[(phase == _HOVER) & (t_s < t_hover)] = _TRANSIT  # a newer plan moves the centre again
             if ph.land_after_hover_s is not None:
                 phase[(phase == _HOVER) & (t_s >= t_hover + ph.land_after_hover_s)] = _LAND
+        if not np.isnan(land_at_s).all():  # a plan lands some vehicles (LAND, RTL, EXCLUDE with landing)
+            phase[IN_FORMATION[phase] & (t_s >= land_at_s)] = _LAND
 
         # Loss of control (a rotor gone): judged only once the launch recovery is over,
         # since a tumbling vehicle in STABILISE is the normal case there.
@@ -304,7 +368,11 @@ class Agent:
         """The transit-start rule (docs/swarm.md): adopt the earliest t_go heard; with
         none, propose t + go_margin_s (rounded up to go_quantum_s) once this vehicle
         and every vehicle heard within peer_timeout_s report assembled, and either all
-        N have been heard so, or that has held for go_wait_s."""
+        N have been heard so, or that has held for go_wait_s; or, so that no vehicle that
+        is heard but cannot assemble holds the swarm hostage, once this vehicle is assembled,
+        every vehicle it still awaits has been in a formation phase (trying to assemble) for
+        go_stall_s, and at least go_quorum of the vehicles heard are assembled (GoDecision
+        says which were left waiting)."""
         sw, n_veh = self.mission.cfg.swarm, self.mission.n
         heard = np.fmin.reduce(view.t_go_s, axis=1) if n_veh else np.full(len(self.ids), np.nan)
         self.t_go_s = np.fmin(self.t_go_s, heard)
@@ -318,18 +386,33 @@ class Agent:
         alive[r, ids] = ~failed[r, ids]
         asm = view.assembled()
         asm[r, ids] = self.assembled
-        cond = self.assembled & ~failed[r, ids] & np.all(asm | ~alive, axis=1)
+        own_ok = self.assembled & ~failed[r, ids]
+        cond = own_ok & np.all(asm | ~alive, axis=1)
         self.go_ready_since_s = np.where(cond, np.fmin(self.go_ready_since_s, t_s), np.nan)
         everyone = np.sum((alive & asm) | failed, axis=1) == n_veh
         propose = pending & cond & (everyone | (t_s - self.go_ready_since_s >= sw.go_wait_s - 1e-9))
-        if propose.any():
+        # The stall clock runs while every vehicle still awaited is trying to assemble (in a
+        # formation phase): one docked or recovering is coming, one in ASSEMBLE may be stuck.
+        trying = view.phase >= _ASSEMBLE
+        trying[r, ids] = self.phase >= _ASSEMBLE
+        stuck_only = own_ok & np.all(asm | ~alive | trying, axis=1)
+        self.go_stall_since_s = np.where(stuck_only, np.fmin(self.go_stall_since_s, t_s), np.nan)
+        n_alive, n_ready = np.sum(alive, axis=1), np.sum(alive & asm, axis=1)
+        stalled = pending & stuck_only & ~propose & (t_s - self.go_stall_since_s >= sw.go_stall_s - 1e-9) \
+            & (n_ready >= sw.go_quorum * n_alive)
+        if propose.any() or stalled.any():
             q = self.mission.cfg.phases.go_quantum_s
-            self.t_go_s[propose] = math.ceil((t_s + sw.go_margin_s) / q - 1e-9) * q
+            go = math.ceil((t_s + sw.go_margin_s) / q - 1e-9) * q
+            self.t_go_s[propose | stalled] = go
+            for k in np.flatnonzero(propose | stalled).tolist():
+                waiting = tuple(np.flatnonzero(alive[k] & ~asm[k]).tolist()) if stalled[k] else ()
+                self.go_decisions.append(GoDecision(t_s, int(ids[k]), go, waiting))
 
     # ---------------------------------------------------------------- planner
     def _formation_accel(self, t_s: float, rows: np.ndarray, own: OwnState, view: SwarmView,
-                         age: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Eq. 31 for the own rows `rows` (indices into self.ids).
+                         age: np.ndarray, groups: list[RefGroup]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Eq. 31 for the own rows `rows` (indices into self.ids), on the references of their
+        plans (`groups`: PlanBook.references for every own row).
 
         Returns (acceleration (R, 3), slot h_i (R, 3), slot velocity (R, 3))."""
         m = self.mission
@@ -347,51 +430,146 @@ class Agent:
         whole = n_rows == view.n_receivers
         vv = view.vel_ned_mps if whole else view.vel_ned_mps[rows]
 
-        u1, h_pos_rows, h_vel_rows = self._consensus(t_s, self.t_go_s[rows], p, v, ids, pred, vv, usable)
+        u1, h_pos_rows, h_vel_rows, resid = self._consensus(rows, groups, p, v, ids, pred, vv, usable)
 
         u2 = np.zeros((n_rows, 3))
+        if cfg.launch == "ground":  # neighbours still on the ground or taking off: their columns
+            self._takeoff_columns(rows, p, view, age, ids, whole, repel, u2)
         kern.pair_repulsion_rows(p, pred, repel, ids, a.vehicle_gain_mps2, a.vehicle_influence_m,
                                  min(a.sensing_radius_m, a.vehicle_influence_m), a.kappa, u2)
         if ghost.any():
             top, bottom = self._ghost_columns(view.pos_ned_m if whole else view.pos_ned_m[rows], vv)
             kern.segment_repulsion_rows(p, top, bottom, np.full(ghost.shape, sw.ghost_radius_m), ghost,
                                         a.vehicle_gain_mps2, a.vehicle_influence_m, a.kappa, u2)
+        if view.intruders is not None:  # (an identity conflict has been heard: rare)
+            self._repel_intruders(rows, p, view.intruders, view.intruders.age_s(t_s), u2)
         if self._n_obstacles:
             kern.segment_repulsion_rows(p, self._obs_ends[:n_rows], self._obs_ends[:n_rows], self._obs_r[:n_rows],
                                         self._obs_use[:n_rows], a.obstacle_gain_mps2, a.obstacle_influence_m, a.kappa,
                                         u2)
+        if cfg.consensus.ki_pos_per_s3 > 0:
+            self._slot_integral(t_s, rows, p, v, h_pos_rows, h_vel_rows, resid, u1, u2)
         acc = np.empty((n_rows, 3))
         kern.clip_sum_rows(u1, u2, cfg.consensus_accel_max_mps2, cfg.total_accel_max_mps2, acc)
         return acc, h_pos_rows, h_vel_rows
 
-    def _consensus(self, t_s, go, p, v, ids, pred, vv, usable):
-        """Eq. 27 for the rows, each on the reference of the transit start it holds
-        (go (R,), NaN = none agreed yet: the assembly point). Rows holding different
-        transit starts fly different references; usually there is one.
-        Returns (u1, slot, slot velocity), each (R, 3); u1 is NaN in a row that read a
-        non-finite value (excluded by the checks of _formation_accel: never flown)."""
+    def _takeoff_columns(self, rows: np.ndarray, p: np.ndarray, view: SwarmView, age: np.ndarray, ids: np.ndarray,
+                         whole: bool, repel: np.ndarray, u2: np.ndarray) -> None:
+        """Ground launch (docs/swarm.md, "Ground take-off"): a neighbour heard on the ground
+        (LAUNCH) or taking off (STABILISE) will occupy the column above its take-off point up
+        to takeoff_alt_m, whenever its arming succeeds (retries delay some by seconds). Each
+        such column repels as a capsule of ghost_radius_m instead of as a point, so an
+        assembling vehicle routes around it rather than across it.
+
+        Args: rows (R,) own rows; p (R, 3); view, age (n, N) the swarm as heard; ids (R,) own
+            ids; whole: every own row flies formation. Writes: repel (R, N) loses the column
+            vehicles (their capsule replaces the point); u2 (R, 3) gains their push.
+        """
+        m, sw, a = self.mission, self.mission.cfg.swarm, self.mission.cfg.apf
+        phase = view.phase if whole else view.phase[rows]
+        flags = view.flags if whole else view.flags[rows]
+        pos = view.pos_ned_m if whole else view.pos_ned_m[rows]
+        col = (phase <= _STABILISE) & (age[rows] <= sw.stale_after_s) & ((flags & FLAG_OWN_VALID) != 0) \
+            & np.isfinite(pos).all(axis=-1)
+        col[np.arange(len(rows)), ids] = False
+        if not col.any():
+            return
+        repel &= ~col
+        ground = m.cfg.ground_z_m
+        top = pos.copy()
+        top[..., 2] = np.minimum(pos[..., 2], (pos[..., 2] if ground is None else ground) - m.cfg.takeoff_alt_m)
+        self.kernels.segment_repulsion_rows(p, top, pos, np.full(col.shape, sw.ghost_radius_m), col,
+                                            a.vehicle_gain_mps2, a.vehicle_influence_m, a.kappa, u2)
+
+    def _slot_integral(self, t_s: float, rows: np.ndarray, p: np.ndarray, v: np.ndarray, h_pos: np.ndarray,
+                       h_vel: np.ndarray, resid: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> None:
+        """Integral action on the own slot error (docs/formation.md, "Integral action"):
+        z' = the law's position residual (consensus_rows' resid: the slot error less what
+        the consensus term asks of the vehicle for its neighbours) plus the repulsion over
+        k2_pos, where it may grow (SlotIntegralConfig), |k_i z| bounded; u1 -= k_i z. At rest
+        that input is (u1 + u2 without the integral) / k2_pos: what the vehicle needs beyond
+        eq. 27 + eq. 30 to stay put, i.e. the bias.
+
+        Args: rows (R,) own rows; p, v (R, 3) their positions and velocities, m and m/s;
+            h_pos, h_vel (R, 3) their slots' positions and velocities; u1 (R, 3) eq. 27, m/s^2, updated in place; u2 (R, 3)
+            the repulsion, m/s^2.
+        """
+        cfg = self.mission.cfg
+        si, ki = cfg.slot_integral, cfg.consensus.ki_pos_per_s3
+        z = self.slot_integral_ms[rows]
+        dt = t_s - self._t_prev_s
+        if dt > 0:  # (NaN on the first step: nothing to integrate yet)
+            # What is left to learn: the law's position residual with the repulsion counted as
+            # part of what the vehicle is asked to hold; at rest by an obstacle (u1 + u2 = 0) it
+            # is 0, with a steady bias b it is b / |k2_pos|.
+            r = resid + u2 / cfg.consensus.k2_pos_per_s2
+            r2 = np.einsum("ij,ij->i", r, r)
+            e, ev = p - h_pos, v - h_vel
+            # Stuck, not closing: the vehicle moves slower than eq. 27's slowest pole would move
+            # it to cover r (a bias holds it still; a transient's tail decays at >= 0.54/s).
+            grow = (r2 < si.zone_m ** 2) & (np.einsum("ij,ij->i", u1, u1) < cfg.consensus_accel_max_mps2 ** 2) \
+                & (np.einsum("ij,ij->i", h_vel, h_vel) < si.slot_speed_max_mps ** 2) \
+                & (np.sqrt(np.einsum("ij,ij->i", ev, ev))
+                   < si.stuck_rate_per_s * np.sqrt(np.minimum(r2, np.einsum("ij,ij->i", e, e))) + si.stuck_speed_mps)
+            if grow.any():  # (every test above is False where a value is NaN)
+                z[grow] += r[grow] * min(dt, si.dt_max_s)
+                zn = np.sqrt(np.einsum("ij,ij->i", z, z))
+                z *= np.minimum(1.0, (si.accel_max_mps2 / ki) / np.maximum(zn, 1e-300))[:, None]
+                self.slot_integral_ms[rows] = z
+        u1 -= ki * z
+
+    def _repel_intruders(self, rows: np.ndarray, p: np.ndarray, it: Intruders, age: np.ndarray,
+                         u2: np.ndarray) -> None:
+        """Senders that claim an own vehicle's id (identity conflicts, docs/swarm.md) repel it
+        as vehicles do, by the neighbours' rules: a fresh, valid, airborne one at its predicted
+        position within the sensing radius, a silent one as a ghost column. Adds into u2 (R, 3).
+
+        Args: rows (R,) own rows; p (R, 3) their positions; it: the view's intruders;
+            age (n, K) of every intruder slot, s (inf where unused).
+        """
+        sw, a, kern = self.mission.cfg.swarm, self.mission.cfg.apf, self.kernels
+        n_rows, k = len(rows), it.stamp_s.shape[1]
+        nobody = np.full(n_rows, -1, np.int64)  # no slot is the own vehicle; coincidence pushes north
+        pred = np.empty((n_rows, k, 3))
+        usable, repel, ghost = (np.empty((n_rows, k), np.bool_) for _ in range(3))
+        cutoff = min(a.sensing_radius_m, a.vehicle_influence_m)
+        kern.neighbour_sets_rows(rows, nobody, p, it.pos_ned_m, it.vel_ned_mps, it.flags, it.phase, age,
+                                 sw.stale_after_s, IN_FORMATION, cutoff, pred, usable, repel, ghost)
+        kern.pair_repulsion_rows(p, pred, repel, nobody, a.vehicle_gain_mps2, a.vehicle_influence_m, cutoff,
+                                 a.kappa, u2)
+        if ghost.any():
+            top, bottom = self._ghost_columns(it.pos_ned_m[rows], it.vel_ned_mps[rows])
+            kern.segment_repulsion_rows(p, top, bottom, np.full(ghost.shape, sw.ghost_radius_m), ghost,
+                                        a.vehicle_gain_mps2, a.vehicle_influence_m, a.kappa, u2)
+
+    def _consensus(self, rows, groups, p, v, ids, pred, vv, usable):
+        """Eq. 27 for the rows, each on the reference its plan gives it (the RefGroups of
+        PlanBook.references: one per plan in force, each with one reference per transit start
+        its rows hold; usually one and one). The consensus graph is the plan's (its vehicles
+        left in the formation: companion.commands.track).
+        Returns (u1, slot, slot velocity, the law's position residual), each (R, 3); u1 is
+        NaN in a row that read a non-finite value (excluded by the checks of
+        _formation_accel: never flown)."""
         m = self.mission
-        gl = go.tolist()  # Python's list beats numpy's per-call cost here
-        g0 = gl[0]
-        one_ref = gl.count(g0) == len(gl) if g0 == g0 else all(x != x for x in gl)  # (NaN != NaN)
-        if one_ref:
-            groups, h_sel = [g0], np.zeros(len(gl), np.int64)
-        else:
-            keys, h_sel = np.unique(np.where(np.isnan(go), -np.inf, go), return_inverse=True)
-            groups = [math.nan if g == -np.inf else g for g in keys.tolist()]
-        n_ref = len(groups)
-        h_pos, h_vel, h_acc = (np.empty((n_ref, m.n, 3)) for _ in range(3))
-        for g, t_go_s in enumerate(groups):
-            c_pos, c_vel, c_acc = m.path.at(m.tau_s(t_s, t_go_s))
-            h_pos[g] = m.offsets_ned_m + c_pos
-            h_vel[g] = c_vel  # every slot moves with the centre
-            h_acc[g] = c_acc
-        out = np.empty((len(ids), 3))
-        self.kernels.consensus_rows(p, v, ids, pred, vv, usable, h_pos, h_vel, h_acc, h_sel, m.weights, m.neighbours,
-                                    self._k, m.cfg.formation_error_max_m, out)
-        if n_ref == 1:
-            return out, h_pos[0, ids], h_vel[0, ids]
-        return out, h_pos[h_sel, ids], h_vel[h_sel, ids]
+        out, resid = np.empty((len(ids), 3)), np.empty((len(ids), 3))
+        if len(groups) == 1 and len(groups[0].rows) == len(rows):  # the usual case: one plan, every row
+            g = groups[0]
+            h_sel = g.h_sel
+            self.kernels.consensus_rows(p, v, ids, pred, vv, usable, g.h_pos, g.h_vel, g.h_acc, h_sel, g.track.weights,
+                                        g.track.neighbours, self._k, m.cfg.formation_error_max_m, out, resid)
+            if len(g.t_go_s) == 1:
+                return out, g.h_pos[0, ids], g.h_vel[0, ids], resid
+            return out, g.h_pos[h_sel, ids], g.h_vel[h_sel, ids], resid
+        h_pos_rows, h_vel_rows = np.empty((len(ids), 3)), np.empty((len(ids), 3))
+        for g in groups:
+            at = np.searchsorted(rows, g.rows)  # (the groups' rows are exactly `rows`, sorted)
+            o, rs = np.empty((len(at), 3)), np.empty((len(at), 3))
+            self.kernels.consensus_rows(p[at], v[at], ids[at], pred[at], vv[at], usable[at], g.h_pos, g.h_vel, g.h_acc,
+                                        g.h_sel, g.track.weights, g.track.neighbours, self._k,
+                                        m.cfg.formation_error_max_m, o, rs)
+            out[at], resid[at] = o, rs
+            h_pos_rows[at], h_vel_rows[at] = g.h_pos[g.h_sel, ids[at]], g.h_vel[g.h_sel, ids[at]]
+        return out, h_pos_rows, h_vel_rows, resid
 
     def _ghost_columns(self, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where a silent vehicle can be: its autopilot brakes to Hold (PX4 offboard loss,
@@ -424,14 +602,18 @@ class Agent:
         self.kernels.own_checks_rows(t_s, own.pos_ned_m, own.vel_ned_mps, q, np.asarray(own.stamp_s, float),
                                      cfg.swarm.own_timeout_s, valid, cos_tilt)
         age = view.age_s(t_s)
-        self._advance_phases(t_s, own, valid, cos_tilt)
+        book = self.plans
+        book.advance(t_s, self.t_go_s)
+        centre_end, land_at = self._plan_times(t_s, book.references(t_s, self.t_go_s))
+        self._advance_phases(t_s, own, valid, cos_tilt, centre_end, land_at)
         phase = self.phase
         sp = FleetSetpoint.empty(n)
         slot = np.full((n, 3), np.nan)
 
-        rows = np.flatnonzero(IN_FORMATION[phase] & valid)
+        rows = np.flatnonzero(IN_FORMATION[phase] & valid & ~self.handed_over)
         if len(rows):
-            acc, h_pos, h_vel = self._formation_accel(t_s, rows, own, view, age)
+            groups = self._groups if len(rows) == n else book.references(t_s, self.t_go_s, rows)
+            acc, h_pos, h_vel = self._formation_accel(t_s, rows, own, view, age, groups)
         else:
             acc = h_pos = h_vel = self._no_rows
         ph = cfg.phases
@@ -441,8 +623,40 @@ class Agent:
                                  cfg.setpoint.lead_s, m.yaw_rad, ph.land_speed_mps, ph.assembled_pos_m,
                                  ph.assembled_speed_mps, sp.pos_ned_m, sp.vel_ned_mps, sp.acc_ned_mps2, sp.yaw_rad,
                                  slot, self.assembled, flags)
+        if view.intruders is not None:  # someone else claims our id: say so in our state
+            flags[view.intruders.heard_within(t_s, cfg.swarm.peer_timeout_s)] |= FLAG_ID_CONFLICT
+        if self._any_handed_over:  # ABORT: nothing is sent; the node hands the vehicle to Hold
+            ho = self.handed_over
+            for f in (sp.pos_ned_m, sp.vel_ned_mps, sp.acc_ned_mps2):
+                f[ho] = np.nan
+            sp.yaw_rad[ho] = np.nan
+            flags[ho] |= FLAG_HANDED_OVER
         # After this tick's assembled flags: a vehicle that reaches its slot now counts now.
         self._agree_t_go(t_s, view, age)
+        self._t_prev_s = t_s
+        seq = book.plan_seq.copy()
         published = SwarmStates(self.ids.copy(), np.asarray(own.stamp_s, float).copy(), own.pos_ned_m.copy(),
-                                own.vel_ned_mps.copy(), q.copy(), phase.copy(), flags, self.t_go_s.copy())
-        return AgentOutput(sp, phase.copy(), self.assembled.copy(), self.t_go_s.copy(), valid, slot, published)
+                                own.vel_ned_mps.copy(), q.copy(), phase.copy(), flags, self.t_go_s.copy(), seq)
+        return AgentOutput(sp, phase.copy(), self.assembled.copy(), self.t_go_s.copy(), valid, slot, published, seq,
+                           self.handed_over.copy())
+
+    def _plan_times(self, t_s: float, groups: list[RefGroup]) -> tuple[np.ndarray, np.ndarray]:
+        """What each row's plan says of time (and ABORT): when its centre comes to rest, when it
+        is handed to LAND (NaN: never). Keeps the groups for this step's formation rows.
+        Returns ((n,), (n,)) s."""
+        n = len(self.ids)
+        self._groups = groups
+        if len(groups) == 1 and groups[0].track.plan.seq == 0 and len(groups[0].t_go_s) == 1:
+            # The mission's own plan, one transit start (every step until a command comes).
+            return np.full(n, groups[0].centre_end_s[0]), self._never
+        centre_end, land_at = np.empty(n), np.full(n, np.nan)
+        for g in groups:
+            tr = g.track
+            centre_end[g.rows] = g.centre_end_s[g.h_sel]
+            if tr.plan.abort:
+                self.handed_over[g.rows] = True
+                self._any_handed_over = True
+            lands = tr.role[self.ids[g.rows]] == ROLE_LAND
+            if lands.any():
+                land_at[g.rows[lands]] = tr.land_handover_s[self.ids[g.rows[lands]]]
+        return centre_end, land_at

@@ -134,6 +134,46 @@ def rot_to_quat_rows(rot: np.ndarray, out: np.ndarray) -> None:
         out[i, 0], out[i, 1], out[i, 2], out[i, 3] = w / n, x / n, y / n, z / n
 
 
+@kernel
+def quat_wxyz_to_rot9(q0, q1, q2, q3):
+    """quat_wxyz_to_rot for one quaternion, as scalars: Hamilton [w, x, y, z] (need not be
+    normalised) -> row-major R (body FRD -> NED) as a 9-tuple. The kernel that compiled
+    controllers call; bit for bit the vectorised function's result (tests/test_frames.py)."""
+    n = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
+    w, x, y, z = q0 / n, q1 / n, q2 / n, q3 / n
+    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
+
+
+@kernel
+def rot9_to_quat_wxyz(r):
+    """Row-major R (a 9-tuple) -> quaternion (w, x, y, z) with w >= 0: the scalar kernel the
+    geometric controller's large-angle law calls.
+
+    Its branch choice is the classic trace-first one (the w branch whenever the trace is
+    positive), not rot_to_quat_wxyz's largest-of-four, and it does not renormalise: the
+    two agree to rounding (tests/test_frames.py), not to the bit. They are kept apart
+    because each is part of seeded results that must not move (the controller's output,
+    the recorded attitudes); both live here, in the one module for conversions."""
+    tr = r[0] + r[4] + r[8]
+    if tr > 0.0:
+        s = 2.0 * math.sqrt(tr + 1.0)
+        w, x, y, z = 0.25 * s, (r[7] - r[5]) / s, (r[2] - r[6]) / s, (r[3] - r[1]) / s
+    elif r[0] > r[4] and r[0] > r[8]:
+        s = 2.0 * math.sqrt(max(1.0 + r[0] - r[4] - r[8], 1e-300))
+        w, x, y, z = (r[7] - r[5]) / s, 0.25 * s, (r[1] + r[3]) / s, (r[2] + r[6]) / s
+    elif r[4] > r[8]:
+        s = 2.0 * math.sqrt(max(1.0 + r[4] - r[0] - r[8], 1e-300))
+        w, x, y, z = (r[2] - r[6]) / s, (r[1] + r[3]) / s, 0.25 * s, (r[5] + r[7]) / s
+    else:
+        s = 2.0 * math.sqrt(max(1.0 + r[8] - r[0] - r[4], 1e-300))
+        w, x, y, z = (r[3] - r[1]) / s, (r[2] + r[6]) / s, (r[5] + r[7]) / s, 0.25 * s
+    if w < 0.0:
+        return -w, -x, -y, -z
+    return w, x, y, z
+
+
 def _nonneg(x: np.ndarray) -> np.ndarray:
     """Clamp at zero (guards sqrt against -1e-17 round-off)."""
     return np.maximum(x, 0.0)

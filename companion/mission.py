@@ -17,34 +17,59 @@ from pydantic.dataclasses import dataclass
 from companion.config import STRICT
 from companion.control import topology
 from companion.control.formation import ConsensusGains, check_stability
+from companion.control.shapes import Shape, offsets_for, spec_from_config
 
 Vec3 = tuple[float, float, float]
 
 
 @dataclass(config=STRICT)
 class FormationConfig:
-    """A horizontal circle of radius_m around the formation centre.
+    """The formation's shape around its centre (companion.control.shapes, docs/scenario.md):
+    a horizontal circle of radius_m (the default), a line, grid or wedge of spacing_m, or a
+    3-D shell of radius_m, turned to the bearing rotation_deg (of the shape's forward axis,
+    clockwise from north). Vehicle i takes slot i.
 
-    slot_order "sequential": vehicle i at bearing 360*i/N deg from north.
+    slot_order (circle only) "sequential": vehicle i at bearing 360*i/N deg from north.
     slot_order "interleaved": vehicles alternate west/east and fill the circle from
     its south end to its north end, so that vehicles released earlier (further
     south along a northbound carrier track) take the southern slots; this keeps
     assembly paths short and mostly uncrossed (docs/scenario.md).
+
+    Raises:
+        pydantic.ValidationError: an unknown shape or order, a size not > 0, a rotation not finite.
     """
 
-    shape: Literal["circle"] = "circle"
+    shape: Shape = "circle"
     radius_m: float = Field(default=40.0, gt=0)
     slot_order: Literal["sequential", "interleaved"] = "interleaved"
+    spacing_m: float = Field(default=5.0, gt=0)
+    """Line, grid and wedge: distance between neighbouring slots, m."""
+    rotation_deg: float = Field(default=0.0, ge=-360.0, le=360.0)
+    """Bearing of the shape's forward axis, clockwise from north, degrees."""
 
 
 @dataclass(config=STRICT)
 class Obstacle:
+    """A static spherical obstacle in the mission frame (NED, m) that the APF steers
+    around (eq. 29-30).
+
+    Raises:
+        pydantic.ValidationError: radius_m not > 0, or a coordinate not finite.
+    """
+
     centre_ned_m: Vec3
     radius_m: float = Field(gt=0)
 
 
 @dataclass(config=STRICT)
 class TopologyConfig:
+    """Who hears whom in the consensus law (eq. 27-28): the weight matrix Mission builds
+    with companion.control.topology, every link of weight `weight`.
+
+    Raises:
+        pydantic.ValidationError: an unknown kind, weight not > 0 or k < 1.
+    """
+
     kind: Literal["chain", "ring", "complete", "k_nearest"] = "chain"
     weight: float = Field(default=1.0, gt=0)
     k: int = Field(default=3, ge=1)
@@ -103,12 +128,70 @@ class SwarmConfig:
     go_wait_s: float = Field(default=10.0, ge=0)
     """With some vehicles of the mission never heard or silent, the others start
     once everything they hear has been assembled for this long."""
+    go_stall_s: float = Field(default=30.0, ge=0)
+    """A vehicle heard trying to assemble (in ASSEMBLE) but not assembled, e.g. an autopilot
+    that holds it off its slot, holds the start at most this long: then the start is proposed
+    without it, if go_quorum of those heard are assembled (docs/swarm.md). Vehicles still
+    docked or recovering are coming: they are waited for. The laggards follow the moving
+    formation from where they are."""
+    go_quorum: float = Field(default=0.5, ge=0, le=1)
+    """Fraction of the vehicles heard alive that must be assembled for the stall rule."""
     own_timeout_s: float = Field(default=0.5, gt=0)
     """The agent's own state older than this counts as invalid: it commands a stop."""
     ghost_radius_m: float = Field(default=1.0, gt=0)
     """Radius of a silent vehicle's column (hold error of its autopilot plus its size)."""
     ghost_brake_mps2: float = Field(default=3.0, gt=0)
     """Deceleration assumed for a silent vehicle's autopilot when it brakes to Hold."""
+
+
+@dataclass(config=STRICT)
+class SlotIntegralConfig:
+    """Where the agent's integral action on its own slot error (ConsensusGains.ki_pos_per_s3,
+    docs/formation.md "Integral action") may grow: near a still slot, with the error stuck
+    and the consensus term unsaturated (conditional integration), and how much it may command
+    (anti-windup). It learns a steady bias (estimator tilt error, accelerometer bias, a wrong
+    hover thrust, steady wind) and holds it while it may not grow. What it integrates leaves
+    out what eq. 27's consensus term and eq. 30's repulsion ask of the vehicle, so it learns
+    neither a neighbour's lag nor an obstacle's push."""
+
+    zone_m: float = Field(default=3.0, gt=0)
+    """It grows only while what is left to learn (the law's residual: a bias b shows as
+    b / |k2_pos|, 2.5 m at accel_max with the default gains) is within this (beyond: a transient)."""
+    accel_max_mps2: float = Field(default=1.5, gt=0)
+    """|k_i z| never exceeds this (covers ~8 deg of tilt error, or a 15 % hover-thrust error)."""
+    slot_speed_max_mps: float = Field(default=0.1, ge=0)
+    """... and only while the slot itself is (nearly) still (assembly, hover): a path-following
+    lag in transit is a transient, not a bias; in transit the integral holds what it learnt."""
+    stuck_rate_per_s: float = Field(default=0.25, ge=0)
+    """... and only while the error is stuck: the vehicle moves relative to its slot at less than
+    this times the residual (+ stuck_speed_mps) per second. eq. 27 alone closes a transient at its
+    slowest pole's rate or faster (0.54/s with the default gains: docs/formation.md); a bias
+    holds the error still; the integral's own correction closes it at ~0.22/s. So an offset
+    that holds is learnt, a transient's tail is not (it would leave a residue to unlearn)."""
+    stuck_speed_mps: float = Field(default=0.005, ge=0)
+    """Speed allowance of the stuck test (estimator noise near the slot), m/s."""
+    dt_max_s: float = Field(default=0.2, gt=0)
+    """A longer gap between plans (a stall, lost telemetry) integrates as this long."""
+
+
+@dataclass(config=STRICT)
+class HoverThrustConfig:
+    """The online hover-thrust estimate of attitude output (companion.output.HoverThrustEstimator).
+
+    Raises:
+        pydantic.ValidationError: a value out of its range.
+    """
+
+    window_s: float = Field(default=0.5, gt=0, le=5.0)
+    """The vertical acceleration is measured over windows this long (velocity change over
+    the window: the noise of one velocity sample is spread over it)."""
+    tau_s: float = Field(default=2.0, gt=0)
+    """Time constant of the estimate (a first-order filter over the windows' measurements)."""
+    bound_frac: float = Field(default=0.2, gt=0, lt=1)
+    """The estimate stays within the parameter's value times 1 -+ this (PX4's estimator
+    allows +-0.2 around MPC_THR_HOVER as well)."""
+    tilt_max_deg: float = Field(default=30.0, gt=0, lt=90)
+    """Windows flown more tilted than this are not used (the thrust model is least sure there)."""
 
 
 @dataclass(config=STRICT)
@@ -120,6 +203,14 @@ class SetpointConfig:
     acceleration leads to lead_s ahead); "acceleration": the acceleration alone."""
     lead_s: float = Field(default=0.02, ge=0)
     """Horizon of the state setpoint; the setpoint period."""
+    acc_ff_max_mps2: float = Field(default=3.0, gt=0)
+    """Bound on the acceleration feed-forward sent (norm; the output stage, companion.output).
+    An autopilot that loses its companion keeps acting on it (ArduPilot for GUID_TIMEOUT T, PX4
+    for COM_OF_LOSS_T), so it bounds the overshoot on loss: v T + acc_ff_max T^2 / 2
+    (docs/agent.md). 3 m/s^2 is the consensus term's own bound; on paper_40 the planner asks
+    more than that in 0.13 % of its commands (the repulsion, briefly)."""
+    hover_thrust: HoverThrustConfig = HoverThrustConfig()
+    """Attitude output's online hover-thrust estimate."""
 
 
 @dataclass(config=STRICT)
@@ -145,7 +236,18 @@ class GeodeticOrigin:
 
 @dataclass(config=STRICT)
 class MissionConfig:
-    n_vehicles: int = Field(default=40, ge=1)
+    """The mission as YAML holds it (scenario `mission:`, or a mission file for
+    `swarmdrop agent`): formation, centre path (NED metres in the mission frame), obstacles,
+    topology, gains, phase thresholds, swarm link, setpoint form and launch. Mission is the
+    form an agent flies by.
+
+    Raises:
+        pydantic.ValidationError: a value out of range, an unknown key, or no waypoint.
+    """
+
+    n_vehicles: int = Field(default=40, ge=1, le=10_000)
+    """Vehicles in the mission. 10,000 bounds what validation itself allocates; each runner
+    has a lower limit of its own (headless 1,000; MAVLink 250: docs/scenario.md)."""
     formation: FormationConfig = FormationConfig()
     waypoints_ned_m: tuple[Vec3, ...] = ((100.0, 0.0, -10.0),)
     """Formation-centre waypoints: the first is where the formation assembles, the
@@ -164,6 +266,7 @@ class MissionConfig:
     instead of accelerating without bound."""
     consensus_accel_max_mps2: float = Field(default=3.0, gt=0)
     total_accel_max_mps2: float = Field(default=8.0, gt=0)
+    slot_integral: SlotIntegralConfig = SlotIntegralConfig()
     phases: PhaseConfig = PhaseConfig()
     swarm: SwarmConfig = SwarmConfig()
     setpoint: SetpointConfig = SetpointConfig()
@@ -189,18 +292,9 @@ class MissionConfig:
 
 
 def formation_offsets_ned_m(cfg: FormationConfig, n: int) -> np.ndarray:
-    """Slot offsets r_i of eq. 25, shape (n, 3), NED metres, in the horizontal plane."""
-    if cfg.slot_order == "sequential":
-        bearing = 2.0 * np.pi * np.arange(n) / n
-    else:
-        # Vehicle i: side alternates west/east, position along the circle from south.
-        i = np.arange(n)
-        pairs = (n + 1) // 2
-        phi = np.pi * ((i // 2) + 0.5) / pairs  # angle from south, (0, pi)
-        side = np.where(i % 2 == 0, -1.0, 1.0)
-        bearing = np.pi - side * phi  # from north, clockwise (towards east)
-    r = cfg.radius_m
-    return np.stack([r * np.cos(bearing), r * np.sin(bearing), np.zeros(n)], axis=1)
+    """Slot offsets r_i of eq. 25 of the config's shape, (n, 3) NED metres: slot i is vehicle
+    i's (companion.control.shapes.offsets_for, the one home of every shape)."""
+    return offsets_for(spec_from_config(cfg), n)
 
 
 @plain_dataclass(frozen=True)
@@ -272,7 +366,7 @@ class Mission:
         n = cfg.n_vehicles
         self.n = n
         self.offsets_ned_m = formation_offsets_ned_m(cfg.formation, n)
-        self.weights = _build_topology(cfg.topology, self.offsets_ned_m)
+        self.weights = build_topology(cfg.topology, self.offsets_ned_m)
         self.neighbours = topology.neighbour_table(self.weights)
         """(N, K) indices of the vehicles each one hears (-1 padded): the consensus loop
         visits only these, not all N columns of the weight matrix."""
@@ -299,7 +393,9 @@ class Mission:
         return self.offsets_ned_m + c
 
 
-def _build_topology(cfg: TopologyConfig, offsets_ned_m: np.ndarray) -> np.ndarray:
+def build_topology(cfg: TopologyConfig, offsets_ned_m: np.ndarray) -> np.ndarray:
+    """The consensus weights W (N, N) of a topology over N vehicles whose slot offsets are
+    offsets_ned_m (only k_nearest reads them), as every agent builds them."""
     n = len(offsets_ned_m)
     if cfg.kind == "chain":
         return topology.chain(n, cfg.weight)

@@ -86,6 +86,14 @@ class PIDGains:
 
 @dataclass(config=STRICT)
 class InnerLoopConfig:
+    """Which inner-loop controller flies (the simulators run it every physics step), with the
+    gains of both, so that the launch studies can compare them on one scenario. In the SITL
+    these are the defaults of the vehicles' parameters (SD_GEO_*, the tilt limit).
+
+    Raises:
+        pydantic.ValidationError: an unknown controller or a gain out of range.
+    """
+
     controller: Literal["geometric", "pid"] = "geometric"
     geometric: GeometricGains = GeometricGains()
     pid: PIDGains = PIDGains()

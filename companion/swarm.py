@@ -26,6 +26,13 @@ FLAG_OWN_VALID = 2
 """The vehicle's own state estimate was finite and fresh when published."""
 FLAG_READY = 4
 """Its autopilot reports it recovered from launch (throw or take-off done)."""
+FLAG_ID_CONFLICT = 8
+"""The vehicle has heard, within swarm.peer_timeout_s, another sender claim its vehicle id
+(an identity conflict, docs/swarm.md): neighbours and the operator see it in its state."""
+FLAG_HANDED_OVER = 16
+"""An ABORT plan handed the vehicle to its autopilot's own Hold: its agent commands nothing."""
+INTRUDER_SLOTS = 4
+"""Senders per receiver kept as intruders (a fifth takes the slot heard longest ago)."""
 PHASE_COUNT = 7
 """Phases are 0 .. PHASE_COUNT - 1 (companion.agent.Phase; a test keeps them equal). A state
 with any other phase is hostile or corrupt and is dropped: the agent indexes by phase."""
@@ -44,6 +51,8 @@ class SwarmStates:
         phase: (k,) int8 agent phase (companion.agent.Phase).
         flags: (k,) uint8, FLAG_* bits.
         t_go_s: (k,) the sender's transit start, mission time, s (NaN = none yet).
+        plan_seq: (k,) seq of the swarm plan the sender flies (0: the mission's own), or None
+            (not known: states heard on the link carry it to the console, not into views).
     """
 
     vehicle_id: np.ndarray
@@ -54,17 +63,57 @@ class SwarmStates:
     phase: np.ndarray
     flags: np.ndarray
     t_go_s: np.ndarray
+    plan_seq: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.vehicle_id)
 
     def select(self, idx) -> "SwarmStates":
         """The rows selected by idx (index array or mask), as a new SwarmStates."""
-        return SwarmStates(*(np.asarray(getattr(self, f))[idx] for f in self.__dataclass_fields__))
+        # (plan_seq alone may be None; mypy cannot tell the fields apart in the generator)
+        return SwarmStates(*(None if getattr(self, f) is None else np.asarray(getattr(self, f))[idx]  # type: ignore[arg-type]
+                             for f in self.__dataclass_fields__))
 
     def rows(self, sl: slice) -> "SwarmStates":
         """The rows of slice sl, as views of these arrays (no copy)."""
-        return SwarmStates(*(getattr(self, f)[sl] for f in self.__dataclass_fields__))
+        return SwarmStates(*(None if getattr(self, f) is None else getattr(self, f)[sl]  # type: ignore[arg-type]
+                             for f in self.__dataclass_fields__))
+
+
+@dataclass
+class Intruders:
+    """What n receivers have heard from senders that claim the receiver's own vehicle id
+    (identity conflicts, docs/swarm.md), one slot per sender, kept like a neighbour entry:
+    the newest stamp wins, and the agent avoids the sender as a vehicle (predicted while
+    fresh, a ghost column once silent), never as itself.
+
+    Attributes:
+        pos_ned_m, vel_ned_mps: (n, K, 3) mission NED, m and m/s; NaN = slot unused.
+        stamp_s: (n, K) measurement time, s; NaN = slot unused.
+        phase: (n, K) int8; flags: (n, K) uint8 FLAG_* bits, as the sender published them.
+        conflicts: (n,) int, states received that claimed the receiver's id.
+    """
+
+    pos_ned_m: np.ndarray
+    vel_ned_mps: np.ndarray
+    stamp_s: np.ndarray
+    phase: np.ndarray
+    flags: np.ndarray
+    conflicts: np.ndarray
+
+    @classmethod
+    def none(cls, n_receivers: int, slots: int = INTRUDER_SLOTS) -> "Intruders":
+        n, k = n_receivers, slots
+        return cls(np.full((n, k, 3), np.nan), np.full((n, k, 3), np.nan), np.full((n, k), np.nan),
+                   np.zeros((n, k), np.int8), np.zeros((n, k), np.uint8), np.zeros(n, np.int64))
+
+    def age_s(self, t_s: float) -> np.ndarray:
+        """(n, K) age of every slot at mission time t_s, s; inf where unused."""
+        return np.fmin(t_s - self.stamp_s, np.inf)
+
+    def heard_within(self, t_s: float, window_s: float) -> np.ndarray:
+        """(n,) bool: some sender claimed the receiver's id within window_s before t_s."""
+        return np.any(t_s - self.stamp_s <= window_s, axis=1)  # NaN (unused) compares False
 
 
 @dataclass
@@ -81,7 +130,9 @@ class SwarmView:
         received: (n,) int, states applied per receiver (for link statistics).
         ignored_old: (n,) int, states dropped because a newer one was already held.
         receive_kernel: the loop `receive` runs (None: receive_rows, interpreted; the
-            simulator passes its compiled twin, sim_bridge.jit).
+            simulator passes its compiled twin, sim_bridge.world.jit).
+        intruders: senders that claimed a receiver's own id (None until one has:
+            the agent's per-tick cost is one test while there is no conflict).
     """
 
     pos_ned_m: np.ndarray
@@ -93,6 +144,7 @@ class SwarmView:
     received: np.ndarray
     ignored_old: np.ndarray
     receive_kernel: Callable | None = field(default=None, repr=False, compare=False)
+    intruders: Intruders | None = field(default=None, repr=False, compare=False)
     _broadcast_idx: dict = field(default_factory=dict, init=False, repr=False, compare=False)
 
     @classmethod
@@ -158,21 +210,46 @@ class SwarmView:
                     flags: int, t_go_s: float) -> bool:
         """One state for one receiver (the onboard path: no arrays built). Same rules
         as receive. Returns True if it was applied."""
-        if not (0 <= vehicle_id < self.n_vehicles and stamp_s == stamp_s and abs(stamp_s) != np.inf
-                and 0 <= phase < PHASE_COUNT):
+        if not 0 <= vehicle_id < self.n_vehicles:
             return False
-        held = self.stamp_s[row, vehicle_id]
-        if held == held and stamp_s <= held:
+        stored = _store_newest(self, (row, vehicle_id), stamp_s, pos_ned_m, vel_ned_mps, phase, flags)
+        if stored:
+            self.t_go_s[row, vehicle_id] = t_go_s
+            self.received[row] += 1
+        elif stored is not None:
             self.ignored_old[row] += 1
-            return False
-        self.pos_ned_m[row, vehicle_id] = pos_ned_m
-        self.vel_ned_mps[row, vehicle_id] = vel_ned_mps
-        self.stamp_s[row, vehicle_id] = stamp_s
-        self.phase[row, vehicle_id] = phase
-        self.flags[row, vehicle_id] = flags
-        self.t_go_s[row, vehicle_id] = t_go_s
-        self.received[row] += 1
-        return True
+        return bool(stored)
+
+    def receive_intruder(self, row: int, slot: int, stamp_s: float, pos_ned_m, vel_ned_mps, phase: int,
+                         flags: int) -> bool:
+        """A state that claims receiver row's own vehicle id but is not its own (an identity
+        conflict: the caller decides that, e.g. companion.node.swarmlink), from the sender
+        kept in intruder slot `slot`. Counted in intruders.conflicts; stored with the
+        rules of receive_one (newest stamp wins). Returns True if it was stored."""
+        if self.intruders is None:
+            self.intruders = Intruders.none(self.n_receivers)
+        it = self.intruders
+        it.conflicts[row] += 1
+        return 0 <= slot < it.stamp_s.shape[1] and bool(
+            _store_newest(it, (row, slot), stamp_s, pos_ned_m, vel_ned_mps, phase, flags))
+
+
+def _store_newest(into, at: tuple[int, int], stamp_s: float, pos_ned_m, vel_ned_mps, phase: int,
+                  flags: int) -> bool | None:
+    """Store one state at index `at` of into's (pos_ned_m, vel_ned_mps, stamp_s, phase,
+    flags) arrays if its stamp is newer than the one held. Returns True if stored, False
+    if not newer, None if it is invalid (non-finite stamp, phase outside the seven)."""
+    if not (stamp_s == stamp_s and abs(stamp_s) != np.inf and 0 <= phase < PHASE_COUNT):
+        return None
+    held = into.stamp_s[at]
+    if held == held and stamp_s <= held:
+        return False
+    into.pos_ned_m[at] = pos_ned_m
+    into.vel_ned_mps[at] = vel_ned_mps
+    into.stamp_s[at] = stamp_s
+    into.phase[at] = phase
+    into.flags[at] = flags
+    return True
 
 
 @kernel
@@ -208,6 +285,12 @@ def receive_rows(rows, src, ids, stamp, pos, vel, phase, flags, t_go, v_pos, v_v
     return applied
 
 
+def tick_index(t_us: int, period_us: int) -> int:
+    """The number of the control tick at t_us: the nearest multiple of period_us (integer
+    µs, so that the agent, the SITL and the headless runner count ticks alike)."""
+    return (int(t_us) + period_us // 2) // period_us
+
+
 def swarm_due(t_us: int, rate_hz: float, vehicle_id, period_us: int):
     """Whether vehicle(s) publish at the control tick t_us: once per 1/rate_hz, each
     vehicle on its own tick offset (vehicle_id modulo the ticks per period), so that the
@@ -223,7 +306,7 @@ def swarm_due(t_us: int, rate_hz: float, vehicle_id, period_us: int):
         period_us: control tick period, µs (the setpoint period).
     """
     per = max(1, int(round(1e6 / (rate_hz * period_us))))
-    k = (int(t_us) + period_us // 2) // period_us
+    k = tick_index(t_us, period_us)
     if isinstance(vehicle_id, (int, np.integer)):
         return (k + int(vehicle_id)) % per == 0
     return (k + np.asarray(vehicle_id)) % per == 0

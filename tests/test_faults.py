@@ -9,12 +9,14 @@ import pytest
 
 from companion import frames
 from companion.agent import Agent, OwnState, Phase
+from companion.config import replace
 from companion.mission import Mission, MissionConfig
 from companion.params import InnerLoopConfig, VehicleParams
 from companion.state import FleetSetpoint
 from companion.swarm import FLAG_ASSEMBLED, FLAG_OWN_VALID, SwarmStates, SwarmView
-from sim_bridge.faults import FaultsConfig, RotorFailure, RotorFailureConfig, RotorFaults, resolve_rotor_failures
-from sim_bridge.physics import Physics, hover_state
+from sim_bridge.sitl.config import sitl_config
+from sim_bridge.world.faults import FaultsConfig, RotorFailure, RotorFailureConfig, RotorFaults, resolve_rotor_failures
+from sim_bridge.world.physics import Physics, hover_state
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -127,13 +129,13 @@ def test_neighbours_drop_a_failed_vehicle_from_consensus_but_still_avoid_it():
         view = SwarmView.unknown(1, m.n)
         if ph is not None:
             _heard(view, 0, t, far, ph)
-        acc[ph] = a._formation_accel(t, np.array([0]), _own(slot, t), view, view.age_s(t))[0][0]
+        acc[ph] = a._formation_accel(t, np.array([0]), _own(slot, t), view, view.age_s(t), a.plans.references(t, a.t_go_s))[0][0]
     assert np.linalg.norm(acc[Phase.ASSEMBLE] - acc[None]) > 0.1  # a healthy neighbour pulls
     np.testing.assert_allclose(acc[Phase.FAILED], acc[None], atol=1e-12)  # a failed one does not
     # ...but a failed vehicle falling close by still repels
     view = SwarmView.unknown(1, m.n)
     _heard(view, 0, t, slot + np.array([0.0, 0.6, 0.0]), Phase.FAILED)
-    push = a._formation_accel(t, np.array([0]), _own(slot, t), view, view.age_s(t))[0][0]
+    push = a._formation_accel(t, np.array([0]), _own(slot, t), view, view.age_s(t), a.plans.references(t, a.t_go_s))[0][0]
     assert push[1] < acc[None][1] - 0.5
 
 
@@ -151,9 +153,9 @@ def test_a_failed_unassembled_vehicle_does_not_hold_up_the_transit_start():
 
 
 def test_headless_run_with_a_rotor_failure_finishes_with_the_healthy_vehicles():
-    from sim_bridge.headless import run_scenario
-    from sim_bridge.metrics import compute_metrics
-    from sim_bridge.simulate import load_scenario
+    from sim_bridge.reports.metrics import compute_metrics
+    from sim_bridge.runs.headless import run_scenario
+    from sim_bridge.scenario import load_scenario
 
     cfg = load_scenario(ROOT / "configs" / "small_6.yaml")
     cfg = dataclasses.replace(cfg, faults=FaultsConfig(rotor_failures=(RotorFailureConfig(vehicle=3, time_s=20.0, rotor=2),)))
@@ -173,7 +175,7 @@ def test_headless_run_with_a_rotor_failure_finishes_with_the_healthy_vehicles():
 
 
 def test_safety_tracker_judges_healthy_pairs_and_tracks_a_failed_vehicle_apart():
-    from sim_bridge.record import SafetyTracker
+    from sim_bridge.reports.record import SafetyTracker
 
     m = _mission(4)
     s = SafetyTracker(1.0, collision_m=0.2)
@@ -192,12 +194,12 @@ def test_safety_tracker_judges_healthy_pairs_and_tracks_a_failed_vehicle_apart()
 
 def test_sitl_applies_a_scheduled_failure_and_says_so():
     """A `faults` entry in the SITL config stops the rotor at its time, with a CRITICAL STATUSTEXT."""
-    from sim_bridge.sitl.config import SitlConfig
-    from sim_bridge.sitl.server import BackgroundSitl
+    from sim_bridge.sitl.background import BackgroundSitl
     from sim_bridge.sitl.testing import MavClient, local_endpoints
 
-    cfg = SitlConfig(vehicles=2, endpoints=local_endpoints(2),
-                     faults=FaultsConfig(rotor_failures=(RotorFailureConfig(vehicle=2, time_s=0.5, rotor=2),)))
+    cfg = sitl_config(2, endpoints=local_endpoints(2))
+    fail = FaultsConfig(rotor_failures=(RotorFailureConfig(vehicle=2, time_s=0.5, rotor=2),))
+    cfg = replace(cfg, scenario=replace(cfg.scenario, faults=fail))
     with BackgroundSitl(cfg) as sitl:
         c = MavClient(cfg.endpoints.remote_base_port + 1)
         try:

@@ -20,6 +20,8 @@ from companion.control.formation import (
 )
 
 CENTRE = np.array([100.0, 0.0, -10.0])
+EQ27 = ConsensusGains(ki_pos_per_s3=0.0)
+"""The paper's law exactly (no integral action): what eq. 28's closed forms describe."""
 
 
 def circle(n, radius_m=40.0):
@@ -125,7 +127,7 @@ def test_rk4_of_the_law_matches_matrix_exponential_of_eq28(topo):
     rng = np.random.default_rng(11)
     n = 6
     W = getattr(T, topo)(n)
-    g = ConsensusGains(k1_pos_per_s2=-0.05, k1_vel_per_s=-0.1)
+    g = ConsensusGains(k1_pos_per_s2=-0.05, k1_vel_per_s=-0.1, ki_pos_per_s3=0.0)
     r = circle(n, 10.0)
     h = formation_reference(r, CENTRE, np.zeros(3), np.zeros(3))
     pos0 = h[0] + rng.uniform(-3, 3, (n, 3))
@@ -152,7 +154,7 @@ def test_chain40_converges_within_time_bound_from_slowest_eigenvalue():
     because M + sigma' I is Hurwitz; it absorbs the chain's Jordan-block
     polynomial growth). So |e| < tol for t >= T = ln(C |e(0)| / tol) / sigma'."""
     n, tol = 40, 1e-3
-    W, g = T.chain(n), ConsensusGains()
+    W, g = T.chain(n), EQ27
     sigma = -check_stability(W, g).real.max()
     np.testing.assert_allclose(sigma, (2.2 - np.sqrt(2.2**2 - 3.6)) / 2, rtol=1e-12)  # follower pole
     M = closed_loop_matrix(W, g)
@@ -218,7 +220,7 @@ def test_accelerating_centre_needs_the_feedforward():
 
 
 def test_default_gains_chain40_eigenvalues_are_exact():
-    eig = check_stability(T.chain(40), ConsensusGains())
+    eig = check_stability(T.chain(40), EQ27)
     assert eig.shape == (240,)
     f1, f2 = (-2.2 + np.array([1, -1]) * np.sqrt(2.2**2 - 3.6)) / 2
     np.testing.assert_allclose(np.unique(np.round(eig.real, 9)), np.sort([-1.0, -0.6, f1, f2]))
@@ -226,7 +228,7 @@ def test_default_gains_chain40_eigenvalues_are_exact():
 
 
 def test_positive_k2_is_refused_naming_eigenvalue_and_mode():
-    g = ConsensusGains(k2_pos_per_s2=0.5)
+    g = ConsensusGains(k2_pos_per_s2=0.5, ki_pos_per_s3=0.0)
     with pytest.raises(FormationUnstableError) as ei:
         check_stability(T.chain(40), g)
     s = (-1.6 + np.sqrt(1.6**2 + 4 * 0.5)) / 2  # root of s^2 + 1.6 s - 0.5
@@ -246,16 +248,17 @@ def test_failure_in_a_coupled_mode_is_attributed_to_it():
 
 def test_marginal_stability_is_refused():
     with pytest.raises(FormationUnstableError, match=r"eigenvalue 0\+0j \(Laplacian eigenvalue 0, mode 0\)"):
-        check_stability(T.complete(5), ConsensusGains(k2_pos_per_s2=0.0))  # pure consensus: drift
+        check_stability(T.complete(5), ConsensusGains(k2_pos_per_s2=0.0, ki_pos_per_s3=0.0))  # pure consensus: drift
 
 
 def _knn_directed(n):
     return T.k_nearest(np.random.default_rng(4).normal(size=(n, 3)), 2, symmetric=False)
 
 
+@pytest.mark.parametrize("ki", [0.0, 0.15])
 @pytest.mark.parametrize("topo", ["chain", "ring", "complete", "knn_sym", "knn_directed"])
 @pytest.mark.parametrize("n", [1, 2, 4])
-def test_kron_and_reduction_agree(topo, n):
+def test_kron_and_reduction_agree(topo, n, ki):
     builders = {
         "chain": T.chain,
         "ring": T.ring,
@@ -264,7 +267,7 @@ def test_kron_and_reduction_agree(topo, n):
         "knn_directed": _knn_directed,
     }
     W = 0.8 * builders[topo](n)
-    g = ConsensusGains(k2_pos_per_s2=-0.4, k2_vel_per_s=-1.2, k3_pos_per_s2=0.5, k3_vel_per_s=0.3)
+    g = ConsensusGains(k2_pos_per_s2=-0.4, k2_vel_per_s=-1.2, k3_pos_per_s2=0.5, k3_vel_per_s=0.3, ki_pos_per_s3=ki)
     a = check_stability(W, g, method="reduction")
     b = check_stability(W, g, method="kron")
     cost = np.abs(a[:, None] - b[None, :])
@@ -275,16 +278,68 @@ def test_kron_and_reduction_agree(topo, n):
 
 def test_reduction_handles_complex_laplacian_modes():
     W = _knn_directed(12)
-    per_mode, lam = mode_eigenvalues(W, ConsensusGains())
+    per_mode, lam = mode_eigenvalues(W, EQ27)
     assert per_mode.shape == (12, 6)
-    b = np.linalg.eigvals(closed_loop_matrix(W, ConsensusGains()))
+    b = np.linalg.eigvals(closed_loop_matrix(W, EQ27))
     for z in per_mode.ravel():
         assert np.min(np.abs(b - z)) < 1e-6
 
 
 def test_large_fleet_uses_reduction_and_kron_is_refused():
     W = T.chain(2000)
-    eig = check_stability(W, ConsensusGains())
+    eig = check_stability(W, EQ27)
     assert eig.shape == (12000,) and eig.real.max() < 0
+    assert check_stability(W, ConsensusGains()).shape == (18000,)  # with the integral states
     with pytest.raises(ValueError, match="reduction"):
         check_stability(T.chain(KRON_MAX_N + 1), ConsensusGains(), method="kron")
+
+
+# --- integral action (our addition) ------------------------------------------------
+
+
+def test_integral_mode_blocks_are_the_third_order_loop():
+    """A lone vehicle (Laplacian mode 0): each axis is s^3 - k2_vel s^2 - k2_pos s + k_i."""
+    g = ConsensusGains()
+    per_mode, lam = mode_eigenvalues(T.complete(1), g)
+    roots = np.roots([1.0, -g.k2_vel_per_s, -g.k2_pos_per_s2, g.ki_pos_per_s3])
+    assert per_mode.shape == (1, 9)
+    for z in per_mode[0]:
+        assert np.min(np.abs(roots - z)) < 1e-9
+    for z in roots:
+        assert np.sum(np.abs(per_mode[0] - z) < 1e-9) == 3  # once per axis
+
+
+@pytest.mark.parametrize("topo", ["chain", "ring"])
+def test_rk4_with_integral_matches_matrix_exponential(topo):
+    """u = eq. 27 - k_i z, z' = the law's position residual e_i + (k3_pos/k2_pos) sum_j
+    w_ij (e_j - e_i): integrating it reproduces exp(M t) of the (9N) closed loop that
+    check_stability analyses (fixed slots; start off the slots)."""
+    rng = np.random.default_rng(12)
+    n, dt, t_end = 5, 0.01, 6.0
+    W, g = getattr(T, topo)(n), ConsensusGains(ki_pos_per_s3=0.3)
+    r = circle(n, 10.0)
+    law = fixed_law(W, g, r)
+    e_p, e_v, z = rng.uniform(-2, 2, (n, 3)), rng.uniform(-1, 1, (n, 3)), rng.uniform(-1, 1, (n, 3))
+    x0 = np.hstack([e_p, e_v, z]).ravel()
+
+    q = g.k3_pos_per_s2 / g.k2_pos_per_s2
+
+    def deriv(p, v, zz):
+        return v, law(0.0, p + r + CENTRE, v) - g.ki_pos_per_s3 * zz, p + q * (W @ p - W.sum(axis=1)[:, None] * p)
+
+    p, v = e_p.copy(), e_v.copy()
+    for _ in range(int(round(t_end / dt))):
+        k1 = deriv(p, v, z)
+        k2 = deriv(*(a + 0.5 * dt * b for a, b in zip((p, v, z), k1)))
+        k3 = deriv(*(a + 0.5 * dt * b for a, b in zip((p, v, z), k2)))
+        k4 = deriv(*(a + dt * b for a, b in zip((p, v, z), k3)))
+        p, v, z = (a + dt / 6 * (b + 2 * c + 2 * d + e) for a, b, c, d, e in zip((p, v, z), k1, k2, k3, k4))
+    x = (expm(closed_loop_matrix(W, g) * t_end) @ x0).reshape(n, 9)
+    np.testing.assert_allclose(np.hstack([p, v, z]), x, atol=1e-7)
+
+
+def test_too_much_integral_gain_is_refused_with_the_routh_condition():
+    g = ConsensusGains(ki_pos_per_s3=1.2)  # |k2_pos k2_vel| = 0.96 < 1.2
+    with pytest.raises(FormationUnstableError, match=r"product above ki_pos \(0.96 > 1.2\?\)"):
+        check_stability(T.chain(5), g)
+    check_stability(T.chain(5), ConsensusGains(ki_pos_per_s3=0.9))

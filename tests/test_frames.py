@@ -94,7 +94,7 @@ def test_rot_to_quat_rows_loop_twin_equals_the_vectorised_conversion():
     from scipy.spatial.transform import Rotation
 
     from companion.frames import rot_to_quat_rows, rot_to_quat_wxyz
-    from sim_bridge.jit import compiled
+    from sim_bridge.world.jit import compiled
 
     rot = Rotation.random(500, random_state=3).as_matrix()
     rot[:4] = [np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1])]  # 0 and 180 deg
@@ -103,3 +103,25 @@ def test_rot_to_quat_rows_loop_twin_equals_the_vectorised_conversion():
         out = np.empty((500, 4))
         fn(rot, out)
         np.testing.assert_allclose(out, ref, rtol=0, atol=1e-15)
+
+
+def test_the_scalar_pair_agrees_with_the_vectorised_pair_interpreted_and_compiled():
+    """The controllers' scalar kernels (quat_wxyz_to_rot9, rot9_to_quat_wxyz) against the
+    vectorised conversions: quaternion -> matrix bit for bit; matrix -> quaternion to
+    rounding (another branch choice, no renormalisation: frames.rot9_to_quat_wxyz), with the
+    same sign convention (w >= 0), over random rotations and the 0/180-degree corners."""
+    from companion.frames import quat_wxyz_to_rot, quat_wxyz_to_rot9, rot9_to_quat_wxyz, rot_to_quat_wxyz
+    from sim_bridge.world.jit import compiled
+
+    q = _random_quats(500, seed=5) * np.random.default_rng(6).uniform(0.5, 2.0, (500, 1))  # not normalised
+    rot = Rotation.random(500, random_state=7).as_matrix()
+    rot[:4] = [np.eye(3), np.diag([1.0, -1, -1]), np.diag([-1.0, 1, -1]), np.diag([-1.0, -1, 1])]
+    ref_r, ref_q = quat_wxyz_to_rot(q), rot_to_quat_wxyz(rot)
+    for q2r, r2q in ((quat_wxyz_to_rot9, rot9_to_quat_wxyz), (compiled(quat_wxyz_to_rot9), compiled(rot9_to_quat_wxyz))):
+        r9 = np.array([q2r(*row) for row in q])
+        np.testing.assert_allclose(r9, ref_r.reshape(-1, 9), rtol=0, atol=1e-15)
+        qq = np.array([r2q(tuple(m.ravel())) for m in rot])
+        assert np.all(qq[:, 0] >= 0)
+        np.testing.assert_allclose(qq, ref_q, rtol=0, atol=1e-12)
+        back = np.array([q2r(*row) for row in qq]).reshape(-1, 3, 3)
+        np.testing.assert_allclose(back, rot, rtol=0, atol=1e-12)  # a round trip

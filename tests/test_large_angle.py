@@ -14,8 +14,8 @@ from companion import frames
 from companion.control.geometric import max_thrust_n, pack_control_params, pack_setpoint, position_law, tilt_first_error
 from companion.params import GRAVITY_MPS2, GeometricGains, VehicleParams
 from companion.state import FleetSetpoint
-from sim_bridge.launch_so3 import run_so3_study
-from sim_bridge.launch_study import fly_launch, launch_metrics
+from sim_bridge.reports.launch_so3 import run_so3_study
+from sim_bridge.reports.launch_study import fly_launch, launch_metrics
 from sim_bridge.scenario import ScenarioConfig
 
 CFG = ScenarioConfig()

@@ -111,7 +111,7 @@ def vehicle_repulsion(
     full gain: +north if query_index > j, else -north. query_index defaults to
     self_index (or to +north for every pair when neither is given).
 
-    Cost: O(N M) time (interpreted here; sim_bridge.jit compiles the same kernel).
+    Cost: O(N M) time (interpreted here; sim_bridge.world.jit compiles the same kernel).
 
     Args:
         pos_ned_m: (N, 3) query vehicle positions, NED metres.

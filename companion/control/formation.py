@@ -14,6 +14,13 @@ Closed loop (eq. 28), stacked vehicle-major (x = [x_1; ...; x_N]):
     x' = (I_N kron (A + B K1 + B K2) - L kron B K3) x + (L kron B K3 - I_N kron B K2) h
          + (I_N kron B) h''.
 
+Integral action (our addition, docs/formation.md "Integral action"): each vehicle adds
+-k_i z_i with z_i' = p_i - h_i (its own slot-position error), because on a real autopilot
+a steady unmodelled acceleration b (estimator bias, tilt error, a wrong hover thrust)
+leaves the proportional-derivative law of eq. 27 off its slot by b / |k2_pos| for ever.
+The agent (companion/agent.py) integrates only near the slot and with the repulsion
+quiet, and bounds k_i |z_i| (anti-windup); the stability analysis below covers z.
+
 Gain signs. The paper gives no signs. We keep the literal sign of eq. 27: K2
 multiplies (x - h), so it must be NEGATIVE (k2_pos < 0, k2_vel < 0) to pull
 towards the slot; K3 multiplies (neighbour error - own error), so it must be
@@ -80,6 +87,16 @@ class ConsensusGains:
     k2_vel_per_s: float = Field(default=-1.6, allow_inf_nan=False)
     k3_pos_per_s2: float = Field(default=0.3, allow_inf_nan=False)
     k3_vel_per_s: float = Field(default=0.6, allow_inf_nan=False)
+    ki_pos_per_s3: float = Field(default=0.1, ge=0, allow_inf_nan=False)
+    """Integral gain on the own slot-position error (our addition; 0 = eq. 27 exactly).
+    With the default K2 the single-vehicle loop s^3 + 1.6 s^2 + 0.6 s + k_i has poles
+    -1.16 and -0.22 +- 0.19j: a steady bias is removed with a ~4.5 s time constant.
+    Routh: stable for k_i < |k2_pos k2_vel| (0.96); check_stability covers the swarm."""
+
+    @property
+    def integral(self) -> bool:
+        """The law has integral states (ki_pos_per_s3 > 0): 9 closed-loop states per vehicle, else 6."""
+        return self.ki_pos_per_s3 > 0
 
     @staticmethod
     def _block(k_pos: float, k_vel: float) -> np.ndarray:
@@ -105,6 +122,7 @@ class ConsensusGains:
             f"K1=(pos {self.k1_pos_per_s2:g}/s^2, vel {self.k1_vel_per_s:g}/s), "
             f"K2=(pos {self.k2_pos_per_s2:g}/s^2, vel {self.k2_vel_per_s:g}/s), "
             f"K3=(pos {self.k3_pos_per_s2:g}/s^2, vel {self.k3_vel_per_s:g}/s)"
+            + (f", Ki={self.ki_pos_per_s3:g}/s^3" if self.integral else "")
         )
 
 
@@ -224,7 +242,8 @@ def consensus_accel(
     bad = consensus_rows(pos[rows], vel[rows], rows, np.broadcast_to(pos, (len(rows), n, 3)),
                          np.broadcast_to(vel, (len(rows), n, 3)), usable, np.asarray(h_pos_ned_m, float)[None],
                          np.asarray(h_vel_ned_mps, float)[None], np.asarray(h_acc_ned_mps2, float)[None],
-                         np.zeros(len(rows), np.int64), W, _topo.neighbour_table(W), gains_vector(gains), math.inf, out)
+                         np.zeros(len(rows), np.int64), W, _topo.neighbour_table(W), gains_vector(gains), math.inf, out,
+                         np.empty((len(rows), 3)))
     if bad >= 0:
         who = rows.tolist() if len(rows) <= 10 else "..."
         raise ValueError(f"non-finite state or reference for vehicle(s) [{bad}] read by vehicle(s) {who}")
@@ -240,13 +259,13 @@ def gains_vector(gains: ConsensusGains) -> np.ndarray:
 
 @kernel
 def consensus_rows(own_pos, own_vel, ids, nb_pos, nb_vel, usable, h_pos, h_vel, h_acc, h_sel, W, nbr, k, err_max,
-                   out) -> int:
+                   out, resid) -> int:
     """eq. 27 (+ h'') for the vehicles ids[r], each with its own view of its neighbours.
 
         out[r] = K1 x_i + K2 e_i + K3 sum_j w_ij (e_j - e_i) + h_i'',  i = ids[r], e = x - h
 
     Args (arrays indexed element by element: interpreted for one onboard vehicle,
-    compiled by sim_bridge.jit for a fleet):
+    compiled by sim_bridge.world.jit for a fleet):
         own_pos, own_vel: (R, 3) states of the commanded vehicles (first-hand).
         ids: (R,) their indices in the mission.
         nb_pos, nb_vel: (R, N, 3) every vehicle's state as row r knows it.
@@ -260,6 +279,12 @@ def consensus_rows(own_pos, own_vel, ids, nb_pos, nb_vel, usable, h_pos, h_vel, 
         k: (6,) gains (gains_vector); err_max: slot-position errors longer than
             this (m) are shortened to it before the law (math.inf = eq. 27 exactly).
         out: (R, 3) written; NaN in a row that read a non-finite value.
+        resid: (R, 3) written: the law's position residual e_i + (k3_pos / k2_pos) sum_j
+            w_ij (e_j - e_i), m (e clipped as above): its proportional part divided by
+            k2_pos. It is 0 wherever the law is at rest without a disturbance, also where
+            the consensus term holds a vehicle off its slot for its neighbours; a steady
+            disturbance b leaves it at b / |k2_pos|. What integral action integrates
+            (companion.agent, SlotIntegralConfig). NaN with out.
     Returns:
         -1, or the index of the first vehicle read whose state or reference is not
         finite (the rows that read one are NaN; the others are computed). A self-loop
@@ -309,9 +334,12 @@ def consensus_rows(own_pos, own_vel, ids, nb_pos, nb_vel, usable, h_pos, h_vel, 
             c5 += w * (v2 - f2)
         if bad >= 0:
             out[r, 0], out[r, 1], out[r, 2] = math.nan, math.nan, math.nan
+            resid[r, 0], resid[r, 1], resid[r, 2] = math.nan, math.nan, math.nan
             if first_bad < 0:
                 first_bad = bad
             continue
+        q = k[4] / k[2] if k[2] != 0.0 else 0.0
+        resid[r, 0], resid[r, 1], resid[r, 2] = e0 + q * c0, e1 + q * c1, e2 + q * c2
         # K = [k_pos I3, k_vel I3], so K x = k_pos p + k_vel v.
         out[r, 0] = k[0] * own_pos[r, 0] + k[1] * own_vel[r, 0] + k[2] * e0 + k[3] * f0 + k[4] * c0 + k[5] * c3 \
             + h_acc[g, i, 0]
@@ -323,23 +351,37 @@ def consensus_rows(own_pos, own_vel, ids, nb_pos, nb_vel, usable, h_pos, h_vel, 
 
 
 def _mode_blocks(gains: ConsensusGains) -> tuple[np.ndarray, np.ndarray]:
-    """M1 = A + B K1 + B K2 and M2 = B K3, both (6, 6)."""
+    """M1 = A + B K1 + B K2 and M2 = B K3, both (6, 6); with integral action (9, 9) over
+    [p; v; z], z' = p + (k3_pos / k2_pos) sum_j w_ij (p_j - p_i) (the law's position residual,
+    consensus_rows' resid) and u gaining -k_i z:
+    M1 = [[A + B K1 + B K2, -k_i B], [[I3, 0], 0]], M2 = [[B K3, 0], [[(k3_pos / k2_pos) I3, 0], 0]]
+    (z_i' = e_i - q (L e)_i with q = k3_pos / k2_pos, L the Laplacian)."""
     A, B = A_DOUBLE_INTEGRATOR, B_DOUBLE_INTEGRATOR
-    return A + B @ gains.k1 + B @ gains.k2, B @ gains.k3
+    m1, m2 = A + B @ gains.k1 + B @ gains.k2, B @ gains.k3
+    if not gains.integral:
+        return m1, m2
+    e1, e2 = np.zeros((9, 9)), np.zeros((9, 9))
+    e1[:6, :6], e1[:6, 6:] = m1, -gains.ki_pos_per_s3 * B
+    e1[6:, :3] = _I3
+    e2[:6, :6] = m2
+    if gains.k2_pos_per_s2 != 0.0:
+        e2[6:, :3] = (gains.k3_pos_per_s2 / gains.k2_pos_per_s2) * _I3
+    return e1, e2
 
 
 def closed_loop_matrix(W: np.ndarray, gains: ConsensusGains) -> np.ndarray:
     """State matrix of eq. 28: I_N kron (A + B K1 + B K2) - L kron (B K3).
 
-    State order is vehicle-major: rows 6i..6i+5 are [p_i; v_i] of vehicle i.
-    Memory is 288 N^2 bytes; prefer mode_eigenvalues for large N.
+    State order is vehicle-major: rows 6i..6i+5 are [p_i; v_i] of vehicle i (with integral
+    action 9i..9i+8, [p_i; v_i; z_i]: _mode_blocks). Memory is 288 N^2 bytes (648 N^2 with
+    integral action); prefer mode_eigenvalues for large N.
 
     Args:
         W: (N, N) weights.
         gains: ConsensusGains.
 
     Returns:
-        (6N, 6N) float array.
+        (6N, 6N) float array ((9N, 9N) with integral action).
 
     Raises:
         ValueError: see topology.check_weights.
@@ -366,8 +408,8 @@ def mode_eigenvalues(W: np.ndarray, gains: ConsensusGains) -> tuple[np.ndarray, 
         gains: ConsensusGains.
 
     Returns:
-        (eigenvalues (N, 6) complex, lam (N,) complex): row k holds the six
-        closed-loop eigenvalues of Laplacian mode lam[k].
+        (eigenvalues (N, 6) complex, lam (N,) complex): row k holds the six (nine with
+        integral action) closed-loop eigenvalues of Laplacian mode lam[k].
 
     Raises:
         ValueError: see topology.check_weights.
@@ -404,7 +446,9 @@ def check_stability(
 
     For real lam >= 0 each axis has characteristic polynomial
     s^2 - (k1v + k2v - lam k3v) s - (k1p + k2p - lam k3p), Hurwitz iff both
-    brackets are negative; complex lam (directed cycles) need the eigenvalues.
+    brackets are negative (with integral action s^3 + a s^2 + b s + k_i, with a and b
+    those brackets negated: Hurwitz iff a, b, k_i > 0 and a b > k_i); complex lam
+    (directed cycles) need the eigenvalues.
 
     Args:
         W: (N, N) weights.
@@ -413,7 +457,8 @@ def check_stability(
         method: "reduction" or "kron".
 
     Returns:
-        (6N,) complex closed-loop eigenvalues (mode-major for "reduction").
+        (6N,) complex closed-loop eigenvalues ((9N,) with integral action; mode-major
+        for "reduction").
 
     Raises:
         FormationUnstableError: some eigenvalue has real part > -STABILITY_MARGIN;
@@ -428,7 +473,8 @@ def check_stability(
         eig = per_mode.ravel()
     elif method == "kron":
         if n > KRON_MAX_N:
-            raise ValueError(f"method='kron' builds a ({6 * n}, {6 * n}) matrix; use 'reduction' for N > {KRON_MAX_N}")
+            d = 9 if gains.integral else 6
+            raise ValueError(f"method='kron' builds a ({d * n}, {d * n}) matrix; use 'reduction' for N > {KRON_MAX_N}")
         eig = np.linalg.eigvals(closed_loop_matrix(W, gains))
     else:
         raise ValueError(f"unknown method {method!r}; use 'reduction' or 'kron'")
@@ -449,6 +495,8 @@ def check_stability(
             hint = (
                 f"; this mode needs k1_pos + k2_pos - lam*k3_pos < 0 (is {a_p:.3g}) "
                 f"and k1_vel + k2_vel - lam*k3_vel < 0 (is {a_v:.3g})"
+                + (f", and their product above ki_pos ({a_p * a_v:.3g} > {gains.ki_pos_per_s3:g}?)"
+                   if gains.integral else "")
             )
         msg = (
             f"closed-loop eigenvalue {_fmt(s)} (Laplacian eigenvalue {lam_k.real:.3g}"

@@ -22,6 +22,8 @@ import numpy as np
 
 from companion.control.kernel import kernel
 from companion.control.so3 import cross, load_mat, mattmul, mattvec, mul, norm, scale, sub
+from companion.frames import quat_wxyz_to_rot9 as quat_to_rot
+from companion.frames import rot9_to_quat_wxyz as rot_to_quat
 from companion.params import GRAVITY_MPS2, GeometricGains, PIDGains, VehicleParams
 from companion.state import FleetSetpoint, FleetState
 
@@ -145,16 +147,6 @@ def desired_rot(b3, yaw):
 
 
 @kernel
-def quat_to_rot(q0, q1, q2, q3):
-    """Hamilton [w,x,y,z] -> row-major R (body -> NED); mirrors companion.frames."""
-    n = math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)
-    w, x, y, z = q0 / n, q1 / n, q2 / n, q3 / n
-    return (1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y))
-
-
-@kernel
 def attitude_law(rot, rot_d, om, om_d, prm):
     """eq. 7-9 with Omegadot_d = 0. Gains are per unit inertia: k_R = J kR, k_Om = J kOm.
 
@@ -173,27 +165,6 @@ def attitude_law(rot, rot_d, om, om_d, prm):
     return (-kr * j[0] * e_r[0] - kom * j[0] * e_om[0] + gyro[0] - ff[0],
             -kr * j[1] * e_r[1] - kom * j[1] * e_om[1] + gyro[1] - ff[1],
             -kr * j[2] * e_r[2] - kom * j[2] * e_om[2] + gyro[2] - ff[2])
-
-
-@kernel
-def rot_to_quat(r):
-    """Row-major R -> unit quaternion (w, x, y, z) with w >= 0 (Shepperd's branch choice)."""
-    tr = r[0] + r[4] + r[8]
-    if tr > 0.0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        w, x, y, z = 0.25 * s, (r[7] - r[5]) / s, (r[2] - r[6]) / s, (r[3] - r[1]) / s
-    elif r[0] > r[4] and r[0] > r[8]:
-        s = 2.0 * math.sqrt(max(1.0 + r[0] - r[4] - r[8], 1e-300))
-        w, x, y, z = (r[7] - r[5]) / s, 0.25 * s, (r[1] + r[3]) / s, (r[2] + r[6]) / s
-    elif r[4] > r[8]:
-        s = 2.0 * math.sqrt(max(1.0 + r[4] - r[0] - r[8], 1e-300))
-        w, x, y, z = (r[2] - r[6]) / s, (r[1] + r[3]) / s, 0.25 * s, (r[5] + r[7]) / s
-    else:
-        s = 2.0 * math.sqrt(max(1.0 + r[8] - r[0] - r[4], 1e-300))
-        w, x, y, z = (r[3] - r[1]) / s, (r[2] + r[6]) / s, (r[5] + r[7]) / s, 0.25 * s
-    if w < 0.0:
-        return -w, -x, -y, -z
-    return w, x, y, z
 
 
 @kernel

@@ -5,7 +5,7 @@ compiles: scalars, tuples, numpy arrays indexed element by element, ``math``
 functions, and calls to other kernels **by bare global name** (``from m import f``,
 never ``module.f``). The companion agent runs these functions as they are, so no
 JIT compiler sits on a companion computer's import path (numba alone costs about
-0.5 s and 100 MB per process). ``sim_bridge.jit.compiled`` compiles the very same
+0.5 s and 100 MB per process). ``sim_bridge.world.jit.compiled`` compiles the very same
 function objects for the headless runner and the SITL, where one call covers
 forty vehicles and thousands of physics steps. One source, two speeds, no fork.
 """
