@@ -80,7 +80,7 @@ BAD_CASES = {
     "bad swarm address": (lambda tmp: ["--vehicle-id", "0", "--mission", str(SMALL6), "--swarm-bind", "nohost"],
                           "expected HOST:PORT"),
     "rate out of range": (lambda tmp: ["--vehicle-id", "0", "--mission", str(SMALL6), "--rate", "1000"],
-                          "rate_hz"),
+                          "--rate: Input should be less than or equal to 400"),
 }
 
 
@@ -191,11 +191,13 @@ def test_swarm_link_input_rules_over_udp():
         _poll_until(link, lambda: link.rejected == 1)
         assert np.isnan(view.stamp_s[0]).all()
         link.set_epoch(EPOCH_UNIX_S)
-        # dropped: own id, out-of-range id, sysid that is not vehicle_id + 1, undecodable bytes
+        # the own id from someone else is an identity conflict (kept apart, never as a neighbour)
         tx.state(own + 1, e_us + 5_000_000, own, (9, 9, 9))
+        _poll_until(link, lambda: link.conflicts == 1)
+        # dropped: out-of-range id, sysid that is not vehicle_id + 1, undecodable bytes
         tx.state(n + 1, e_us + 5_000_000, n, (9, 9, 9))
         tx.state(5, e_us + 5_000_000, 2, (9, 9, 9))
-        _poll_until(link, lambda: link.rejected == 4)
+        _poll_until(link, lambda: link.rejected == 3)
         bad = bytearray(tx.frame(2, e_us + 5_000_000, 1, (9, 9, 9)))
         bad[-1] ^= 0xFF  # wrong CRC
         junk = [bytes(bad), bytes(range(7, 71)) + b"\xfd\x03", tx.frame(2, e_us + 5_000_000, 1, (9, 9, 9))[:20]]
@@ -204,7 +206,7 @@ def test_swarm_link_input_rules_over_udp():
             tx.raw(blob)
         _poll_until(link, lambda: rx_ep.link.bytes_in >= bytes_before + sum(map(len, junk)))
         assert rx_ep.bad_frames >= 1 and rx_ep.link.bytes_skipped > 0
-        assert np.isnan(view.stamp_s[0]).all() and link.states_in == 0 and link.rejected == 4
+        assert np.isnan(view.stamp_s[0]).all() and link.states_in == 0 and link.rejected == 3
         # a good state, then an older copy (reordered) and a duplicate: the newest is kept
         tx.state(2, e_us + 5_000_000, 1, (1, 2, 3), (0.5, 0, 0))
         _poll_until(link, lambda: link.states_in == 1)
@@ -218,7 +220,7 @@ def test_swarm_link_input_rules_over_udp():
         _poll_until(link, lambda: link.states_in == 4)
         assert view.stamp_s[0, 1] == pytest.approx(5.1) and view.pos_ned_m[0, 1].tolist() == [4, 5, 6]
         assert np.isnan(view.stamp_s[0, [0, 2, 3]]).all()  # nobody else was ever stored
-        assert link.rejected == 4
+        assert link.rejected == 3 and link.conflicts == 1
         # the radio's end-of-tick marker is taken whoever signs it
         tx.ep.queue_fields(md.MAVLINK_MSG_ID_SWARMDROP_TICK, [e_us + 5_100_000], tx.dest, sysid=255, compid=0)
         tx.ep.flush()
@@ -252,8 +254,9 @@ def _wait_for(cond, timeout_s: float, what: str, proc: subprocess.Popen | None =
 @pytest.mark.timeout(120)
 @pytest.mark.parametrize("dialect", ["px4", "ardupilot"])
 def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
-    from sim_bridge.sitl.config import EndpointConfig, HomeConfig, MediumConfig, SitlConfig, SpawnConfig, TimeConfig
-    from sim_bridge.sitl.server import BackgroundSitl
+    from companion.mission import GeodeticOrigin
+    from sim_bridge.sitl.background import BackgroundSitl
+    from sim_bridge.sitl.config import EndpointConfig, MediumConfig, TimeConfig, sitl_config
 
     d = dialect_named(dialect)
     mission_path = _ground_mission(tmp_path)
@@ -262,8 +265,8 @@ def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
     base = free_udp_base_port(3)
     ap_port, swarm_port, radio_port = base, base + 1, base + 2
     tlog = tmp_path / "sitl.tlog"
-    cfg = SitlConfig(
-        vehicles=1, dialect=dialect, seed=3, home=HomeConfig(**ORIGIN), spawn=SpawnConfig(launch="ground"),
+    cfg = sitl_config(
+        1, seed=3, launch="ground", origin=GeodeticOrigin(**ORIGIN), dialect=dialect,
         endpoints=EndpointConfig(remote_host="127.0.0.1", remote_base_port=ap_port, bind_host="127.0.0.1",
                                  local_base_port=0),
         time=TimeConfig(lockstep=True, epoch_unix_s=EPOCH_UNIX_S),
@@ -275,6 +278,7 @@ def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
         agent_cmd("--vehicle-id", "0", "--autopilot", f"udpin://127.0.0.1:{ap_port}", "--mission", str(mission_path),
                   "--swarm-bind", f"127.0.0.1:{swarm_port}", "--swarm-peer", f"127.0.0.1:{radio_port}",
                   "--launch", "ground", "--lockstep", "--setup-timeout", "20", "--log-file", str(log),
+                  "--set-loss-action", "hold",  # the SITL's PX4 boots with COM_OBL_RC_ACT 0 (drifts): refused
                   "--no-stderr-log", "--stats", str(tmp_path / "agent.json")),
         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:

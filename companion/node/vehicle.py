@@ -5,7 +5,12 @@ dialect from the first HEARTBEAT, converts the autopilot's clock to Unix time
 (SYSTEM_TIME) and its local frame to the mission frame (GPS_GLOBAL_ORIGIN), and
 offers commands and parameter access with timeout and retries (as MAVSDK does:
 0.5 s, four sends). Only messages from the target system's autopilot component
-(compid 1) count; anything malformed or non-finite is counted and dropped.
+(MAV_COMP_ID_AUTOPILOT1) count; anything malformed or non-finite is counted and dropped.
+
+The target system is fixed in advance (the mission's sysid of this vehicle, or an
+explicit override), never "the first autopilot heard": on a link that carries several
+autopilots (a router) the others are counted in `other_autopilots` and ignored, and
+the node refuses to fly when only others are heard (docs/companion.md, "Identity").
 """
 from __future__ import annotations
 
@@ -20,18 +25,34 @@ import numpy as np
 from companion.frames import geodetic_to_ned
 from companion.link.dialects import AutopilotDialect, HeartbeatState, UnknownAutopilot, dialect_for_autopilot
 from companion.link.endpoints import MavEndpoint
-from companion.link.msgdef import swarmdrop as md
-from companion.link.params import MAV_PARAM_TYPE_REAL32, decode_param_value, encode_param_value, param_name
+from companion.link.enums import (
+    MavAutopilot,
+    MavCmd,
+    MavComponent,
+    MavLandedState,
+    MavParamType,
+    MavResult,
+    MavState,
+    MavType,
+    MsgId,
+)
+from companion.link.params import decode_param_value, encode_param_value, param_name
 from companion.mission import GeodeticOrigin
 
 log = logging.getLogger("swarmdrop.vehicle")
 
-MAV_TYPE_ONBOARD_CONTROLLER = 18
-MAV_AUTOPILOT_INVALID = 8
-MAV_COMP_ID_ONBOARD_COMPUTER = 191
-ACCEPTED, IN_PROGRESS = 0, 5
-RESULT_NAMES = {0: "ACCEPTED", 1: "TEMPORARILY_REJECTED", 2: "DENIED", 3: "UNSUPPORTED", 4: "FAILED",
-                5: "IN_PROGRESS", 6: "CANCELLED"}
+AUTOPILOT = MavComponent.MAV_COMP_ID_AUTOPILOT1
+"""The component whose messages count, and that commands and setpoints are for."""
+_LPN = MsgId.LOCAL_POSITION_NED  # bound once: handle_raw runs per message at the setpoint rate
+RESULT_NAMES = {MavResult.MAV_RESULT_ACCEPTED: "ACCEPTED", MavResult.MAV_RESULT_TEMPORARILY_REJECTED: "TEMPORARILY_REJECTED",
+                MavResult.MAV_RESULT_DENIED: "DENIED", MavResult.MAV_RESULT_UNSUPPORTED: "UNSUPPORTED",
+                MavResult.MAV_RESULT_FAILED: "FAILED", MavResult.MAV_RESULT_IN_PROGRESS: "IN_PROGRESS",
+                6: "CANCELLED"}
+"""How a refusal names its MAV_RESULT in CommandError. 6 is MAV_RESULT_CANCELLED, which the
+pinned pymavlink's common.xml (hence MavResult) does not have yet; a value without a name
+(COMMAND_LONG_ONLY, COMMAND_INT_ONLY) is shown as its number."""
+PARAM_INDEX_BY_NAME = -1
+"""PARAM_REQUEST_READ.param_index that asks by param_id instead."""
 
 
 class CommandError(RuntimeError):
@@ -51,18 +72,24 @@ class VehicleLink:
 
     Args:
         endpoint: the MAVLink endpoint to the autopilot.
-        target_sysid: the autopilot's system id (None: the first autopilot heard).
+        target_sysid: the autopilot's system id; other autopilots on the link are ignored.
         origin: the mission frame's geodetic origin.
+        url: the link as the user gave it (for log lines).
     """
 
-    def __init__(self, endpoint: MavEndpoint, target_sysid: int | None, origin: GeodeticOrigin):
+    def __init__(self, endpoint: MavEndpoint, target_sysid: int, origin: GeodeticOrigin, url: str = ""):
         self.ep = endpoint
         self.target_sysid = target_sysid
+        self.url = url
+        self.other_autopilots: dict[int, int] = {}
+        """HEARTBEATs heard from autopilots with another sysid, by sysid (not ours: ignored)."""
+        self.other_since = math.inf
+        """Loop time at which the first of those was heard."""
         self.mission_origin = origin
         self.dialect: AutopilotDialect | None = None
         self.hb: HeartbeatState | None = None
         self.hb_loop_time = -math.inf
-        self.landed_state = 0
+        self.landed_state = MavLandedState.MAV_LANDED_STATE_UNDEFINED
         self.lpn: Sample | None = None
         self.att: Sample | None = None
         self.origin_e7: tuple[int, int, int] | None = None
@@ -82,17 +109,22 @@ class VehicleLink:
         self._msg_waiters: dict[int, list[asyncio.Future]] = {}
         self.new_control = False
         """Set when a LOCAL_POSITION_NED newer than the last one arrived."""
+        codec = endpoint.codec  # named-field builders, resolved once (companion.link.builder)
+        self._heartbeat = codec.builder(MsgId.HEARTBEAT)
+        self._command_long = codec.builder(MsgId.COMMAND_LONG)
+        self._param_request_read = codec.builder(MsgId.PARAM_REQUEST_READ)
+        self._param_set = codec.builder(MsgId.PARAM_SET)
 
     # ---------------------------------------------------------------- inbound
-    RAW_IDS = frozenset({31, 32})
+    RAW_IDS = frozenset({MsgId.ATTITUDE_QUATERNION, MsgId.LOCAL_POSITION_NED})
     """ATTITUDE_QUATERNION and LOCAL_POSITION_NED come at the setpoint rate: read raw."""
 
     def handle_raw(self, msgid: int, sysid: int, compid: int, w: tuple) -> None:
         """A LOCAL_POSITION_NED or ATTITUDE_QUATERNION as wire-order values (Codec.decode_raw)."""
-        if compid != 1 or sysid != self.target_sysid:
+        if compid != AUTOPILOT or sysid != self.target_sysid:
             self.foreign += 1
             return
-        if msgid == 32:  # time_boot_ms, x, y, z, vx, vy, vz
+        if msgid == _LPN:  # time_boot_ms, x, y, z, vx, vy, vz
             if not math.isfinite(w[1] + w[2] + w[3] + w[4] + w[5] + w[6]):
                 self.dropped_nonfinite += 1
                 return
@@ -111,15 +143,15 @@ class VehicleLink:
         """One received message (anything; wrong sender or bad values are dropped)."""
         src = msg.get_srcSystem()
         t = msg.get_type()
-        if self.target_sysid is None and t == "HEARTBEAT" and msg.get_srcComponent() == 1 \
-                and msg.autopilot != MAV_AUTOPILOT_INVALID:
-            self.target_sysid = src  # the first autopilot heard
-        if msg.get_srcComponent() != 1 or src != self.target_sysid:
+        if msg.get_srcComponent() != AUTOPILOT or src != self.target_sysid:
             self.foreign += 1
+            if t == "HEARTBEAT" and msg.get_srcComponent() == AUTOPILOT \
+                    and msg.autopilot != MavAutopilot.MAV_AUTOPILOT_INVALID:
+                self._other_autopilot(src)
             return
         msgid = msg.get_msgId()
         if msgid in self.RAW_IDS:  # one code path for these, whichever way they were decoded
-            self.handle_raw(msgid, src, 1, tuple(getattr(msg, f) for f in msg.ordered_fieldnames))
+            self.handle_raw(msgid, src, AUTOPILOT, tuple(getattr(msg, f) for f in msg.ordered_fieldnames))
         else:
             fn = getattr(self, "_on_" + t.lower(), None)
             if fn is not None:
@@ -128,8 +160,18 @@ class VehicleLink:
             if not fut.done():
                 fut.set_result(msg)
 
+    def _other_autopilot(self, sysid: int) -> None:
+        """An autopilot that is not ours spoke on this link (a router, or the wrong port)."""
+        if sysid not in self.other_autopilots:  # (bounded: a sysid is one byte)
+            log.info("autopilot sysid %d on %s is not this vehicle's (sysid %d): ignored", sysid, self.url,
+                     self.target_sysid)
+            if not self.other_autopilots:
+                self.other_since = asyncio.get_running_loop().time()
+            self.other_autopilots[sysid] = 0
+        self.other_autopilots[sysid] += 1
+
     def _on_heartbeat(self, msg) -> None:
-        if msg.autopilot == MAV_AUTOPILOT_INVALID:
+        if msg.autopilot == MavAutopilot.MAV_AUTOPILOT_INVALID:  # a GCS or another companion
             return
         if self.dialect is None:
             try:
@@ -137,7 +179,7 @@ class VehicleLink:
             except UnknownAutopilot as err:
                 log.error("%s", err)
                 return
-            log.info("autopilot sysid %d speaks %s", msg.get_srcSystem(), self.dialect.name)
+            log.info("autopilot sysid %d on %s speaks %s", msg.get_srcSystem(), self.url, self.dialect.name)
         self.hb = HeartbeatState(msg.custom_mode, msg.base_mode, msg.system_status, self.landed_state)
         self.launch_ready = self.dialect.launch_ready(self.hb)
         self.hb_loop_time = asyncio.get_running_loop().time()
@@ -181,7 +223,7 @@ class VehicleLink:
 
     def _on_command_ack(self, msg) -> None:
         fut = self._acks.get(msg.command)
-        if fut is not None and not fut.done() and msg.result != IN_PROGRESS:
+        if fut is not None and not fut.done() and msg.result != MavResult.MAV_RESULT_IN_PROGRESS:
             fut.set_result(msg.result)
 
     def _on_param_value(self, msg) -> None:
@@ -206,11 +248,19 @@ class VehicleLink:
 
     # ---------------------------------------------------------------- outbound
     def send(self, msgid: int, values) -> None:
-        """Queue a message for the autopilot (sent at the next flush)."""
+        """Queue a message for the autopilot (sent at the next flush).
+
+        Args:
+            msgid: a MsgId of the dialect.
+            values: its field values in declaration order (a builder's output, Codec.builder).
+        """
         self.ep.queue_fields(msgid, values)
 
     def heartbeat(self) -> None:
-        self.send(md.MAVLINK_MSG_ID_HEARTBEAT, [MAV_TYPE_ONBOARD_CONTROLLER, MAV_AUTOPILOT_INVALID, 0, 0, 4])
+        """The companion's HEARTBEAT: an onboard controller, no autopilot, active."""
+        self.send(MsgId.HEARTBEAT, self._heartbeat(
+            type=MavType.MAV_TYPE_ONBOARD_CONTROLLER, autopilot=MavAutopilot.MAV_AUTOPILOT_INVALID, base_mode=0,
+            custom_mode=0, system_status=MavState.MAV_STATE_ACTIVE))
 
     async def _exchange(self, send, waiter: asyncio.Future, what: str, timeout_s: float, retries: int):
         for attempt in range(retries):
@@ -223,21 +273,34 @@ class VehicleLink:
         waiter.cancel()
         raise CommandError(f"{what}: no answer after {retries} tries of {timeout_s} s")
 
-    def _command_values(self, command: int, params, confirmation: int = 0) -> list:
+    def _command_values(self, command: int, params, confirmation: int = 0) -> tuple:
+        """COMMAND_LONG values for our autopilot. Params left out are sent as 0.0, as the
+        agent always has (not the builder's NaN "use the default")."""
         p = [float(x) for x in params] + [0.0] * (7 - len(params))
-        return [self.target_sysid, 1, command, confirmation, *p]
+        return self._command_long(target_system=self.target_sysid, target_component=AUTOPILOT, command=command,
+                                  confirmation=confirmation, param1=p[0], param2=p[1], param3=p[2], param4=p[3],
+                                  param5=p[4], param6=p[5], param7=p[6])
 
     def command_now(self, command: int, params) -> "asyncio.Task[int]":
         """Queue the first COMMAND_LONG now (it leaves with the next flush, in order with
         whatever is already queued) and return a task that waits for the ACK, resending
-        as `command` does."""
-        self.send(md.MAVLINK_MSG_ID_COMMAND_LONG, self._command_values(command, params))
+        as `command` does.
+
+        Args:
+            command: a MavCmd. params: up to 7 floats (param1...).
+        """
+        self.send(MsgId.COMMAND_LONG, self._command_values(command, params))
         return asyncio.ensure_future(self.command(command, params, first_sent=True))
 
     async def command(self, command: int, params, timeout_s: float = 0.5, retries: int = 4,
                       accept_temporarily_rejected: bool = False, first_sent: bool = False) -> int:
         """COMMAND_LONG with retries; returns the MAV_RESULT.
 
+        Args:
+            command: a MavCmd. params: up to 7 floats (param1...; the rest are 0.0).
+            timeout_s: wait for the ACK this long per send, s. retries: sends in all.
+            accept_temporarily_rejected: MAV_RESULT_TEMPORARILY_REJECTED counts as accepted.
+            first_sent: command_now has already queued the first send.
         Raises:
             CommandError: no ACK, or a result other than ACCEPTED.
         """
@@ -249,37 +312,47 @@ class VehicleLink:
             if sends[0]:
                 sends[0] = False
                 return
-            self.send(md.MAVLINK_MSG_ID_COMMAND_LONG, self._command_values(command, params))
+            self.send(MsgId.COMMAND_LONG, self._command_values(command, params))
 
         try:
             result = await self._exchange(send, fut, f"command {command}", timeout_s, retries)
         finally:
             self._acks.pop(command, None)
-        if result != ACCEPTED and not (accept_temporarily_rejected and result == 1):
+        if result != MavResult.MAV_RESULT_ACCEPTED and not (
+                accept_temporarily_rejected and result == MavResult.MAV_RESULT_TEMPORARILY_REJECTED):
             raise CommandError(f"command {command} refused: {RESULT_NAMES.get(result, result)}")
         return result
 
     async def request_message(self, msgid: int, timeout_s: float = 1.0, retries: int = 3):
-        """MAV_CMD_REQUEST_MESSAGE (512) until the message arrives; returns it.
+        """MAV_CMD_REQUEST_MESSAGE until the message arrives; returns it.
 
+        Args:
+            msgid: a MsgId. timeout_s: wait this long per request, s. retries: requests in all.
         Raises:
             CommandError: it never came.
         """
         fut = asyncio.get_running_loop().create_future()
         self._msg_waiters.setdefault(msgid, []).append(fut)
-        return await self._exchange(
-            lambda: self.send(md.MAVLINK_MSG_ID_COMMAND_LONG, [self.target_sysid, 1, 512, 0, msgid, 0, 0, 0, 0, 0, 0]),
-            fut, f"message {msgid}", timeout_s, retries)
+        values = self._command_values(MavCmd.MAV_CMD_REQUEST_MESSAGE, [msgid])
+        return await self._exchange(lambda: self.send(MsgId.COMMAND_LONG, values), fut, f"message {msgid}",
+                                    timeout_s, retries)
 
     async def set_message_interval(self, msgid: int, interval_s: float) -> None:
-        await self.command(511, [msgid, interval_s * 1e6])
+        """MAV_CMD_SET_MESSAGE_INTERVAL: stream msgid (a MsgId) every interval_s seconds.
+
+        Raises:
+            CommandError: refused, or not acknowledged.
+        """
+        await self.command(MavCmd.MAV_CMD_SET_MESSAGE_INTERVAL, [msgid, interval_s * 1e6])
 
     async def get_param(self, name: str, timeout_s: float = 1.0, retries: int = 3) -> float:
         """PARAM_REQUEST_READ by name. Raises CommandError."""
         fut = asyncio.get_running_loop().create_future()
         self._param_waiters.setdefault(name, []).append(fut)
         value, _ = await self._exchange(
-            lambda: self.send(md.MAVLINK_MSG_ID_PARAM_REQUEST_READ, [self.target_sysid, 1, name.encode(), -1]),
+            lambda: self.send(MsgId.PARAM_REQUEST_READ, self._param_request_read(
+                target_system=self.target_sysid, target_component=AUTOPILOT, param_id=name.encode(),
+                param_index=PARAM_INDEX_BY_NAME)),
             fut, f"parameter {name}", timeout_s, retries)
         return value
 
@@ -287,7 +360,7 @@ class VehicleLink:
         """PARAM_SET, then check the echo. Raises CommandError if it does not take."""
         if name not in self._param_types:
             await self.get_param(name)  # learns the type to send
-        ptype = self._param_types.get(name, MAV_PARAM_TYPE_REAL32)
+        ptype = self._param_types.get(name, MavParamType.MAV_PARAM_TYPE_REAL32)
         if self.dialect is None:
             raise CommandError(f"PARAM_SET {name}: no autopilot heard yet")
         enc = self.dialect.param_encoding
@@ -295,7 +368,9 @@ class VehicleLink:
         fut = asyncio.get_running_loop().create_future()
         self._param_waiters.setdefault(name, []).append(fut)
         got, _ = await self._exchange(
-            lambda: self.send(md.MAVLINK_MSG_ID_PARAM_SET, [self.target_sysid, 1, name.encode(), wire, ptype]),
+            lambda: self.send(MsgId.PARAM_SET, self._param_set(
+                target_system=self.target_sysid, target_component=AUTOPILOT, param_id=name.encode(), param_value=wire,
+                param_type=ptype)),
             fut, f"set {name}", timeout_s, retries)
         if abs(got - value) > 1e-6 * max(1.0, abs(value)):
             raise CommandError(f"parameter {name}: set to {value}, autopilot kept {got}")
