@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import pytest
 
-from sim_bridge.fuzz import Mutator, corpus, find_tracebacks, run
+from sim_bridge.runs.fuzz import Mutator, corpus, find_tracebacks, run
 
 
 def test_mutator_is_seeded_and_covers_the_corpus():

@@ -11,11 +11,11 @@ from companion.control.formation import consensus_rows
 from companion.control.geometric import N_SP, pack_setpoint
 from companion.params import InnerLoopConfig, VehicleParams
 from companion.state import FleetSetpoint
-from sim_bridge.headless import run_batch, run_scenario
-from sim_bridge.physics import Physics, hover_state
-from sim_bridge.simulate import load_scenario
-from sim_bridge.sweep import plan_batches
-from sim_bridge.transport import AgeHistogram
+from sim_bridge.runs.headless import run_batch, run_scenario
+from sim_bridge.runs.sweep import plan_batches
+from sim_bridge.scenario import load_scenario
+from sim_bridge.world.physics import Physics, hover_state
+from sim_bridge.world.transport import AgeHistogram
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -98,14 +98,14 @@ def test_consensus_rows_poisons_only_the_row_that_read_a_bad_value():
     k = np.array([-1.0, -2.0, -0.5, -0.5, 0.3, 0.3])
     out = np.empty((n, 3))
     bad = consensus_rows(pos, vel, ids, nb_pos, np.broadcast_to(vel, (n, n, 3)), usable, h, h * 0.1, h * 0.01, sel,
-                         W, nbr, k, math.inf, out)
+                         W, nbr, k, math.inf, out, np.empty((n, 3)))
     assert bad == 0 and np.isnan(out[2]).all() and np.isfinite(np.delete(out, 2, axis=0)).all()
     for r in (0, 1, 3):  # each good row is what it is computed alone, on its own reference
         one = np.empty((1, 3))
         g = sel[r]
         consensus_rows(pos[r:r + 1], vel[r:r + 1], ids[r:r + 1], nb_pos[r:r + 1], np.broadcast_to(vel, (1, n, 3)),
                        usable[r:r + 1], h[g:g + 1], h[g:g + 1] * 0.1, h[g:g + 1] * 0.01, np.zeros(1, np.int64), W, nbr,
-                       k, math.inf, one)
+                       k, math.inf, one, np.empty((1, 3)))
         np.testing.assert_array_equal(one[0], out[r])
 
 

@@ -14,7 +14,8 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
-from sim_bridge.sitl.config import SitlConfig  # noqa: E402
+from companion.config import replace  # noqa: E402
+from sim_bridge.sitl.config import default_scenario, sitl_config  # noqa: E402
 from sim_bridge.sitl.params_table import MAV_PARAM_TYPE_REAL32  # noqa: E402
 from sim_bridge.sitl.server import SitlServer  # noqa: E402
 from sim_bridge.sitl.testing import MavClient, local_endpoints, pack_frame, running_sitl, vehicle_client  # noqa: E402
@@ -75,27 +76,27 @@ class _Sink:
     def __init__(self):
         self.out = []
 
-    def queue(self, msg, addr=None, sysid=None, compid=None):
-        self.out.append(msg)
+    def queue_fields(self, msgid, values, addr=None, sysid=None, compid=None):
+        self.out.append((msgid, values))
 
 
 def test_parameter_churn_keeps_one_physics_group_per_gain_set():
     """Regression: every distinct controller gain set created a physics group that was never
     freed; a few hundred PARAM_SETs left the SITL at 0.66x real time for good."""
-    server = SitlServer(SitlConfig(vehicles=N, endpoints=local_endpoints(N)))
+    server = SitlServer(sitl_config(N, endpoints=local_endpoints(N)))
     sink = _Sink()
     for i in range(300):
-        msg = mavlink.MAVLink_param_set_message(1, 1, b"SD_GEO_KX", 10.0 + 0.01 * i, MAV_PARAM_TYPE_REAL32)
+        msg = mavlink.MAVLink_param_set_message(1, 1, b"SD_GEO_KR", 10.0 + 0.01 * i, MAV_PARAM_TYPE_REAL32)
         server.router.handle(sink, msg, None, 0)
     assert len(sink.out) == 300  # every set is echoed
-    assert math.isclose(server.params[0]["SD_GEO_KX"], 12.99, rel_tol=1e-6)
-    assert len(server._physics) == 2 and len(server._group_keys) == 2  # vehicle 0's gains, the others'
-    assert server._group.tolist() == [1, 0, 0] or server._group.tolist() == [0, 1, 1]
+    assert math.isclose(server.params[0]["SD_GEO_KR"], 12.99, rel_tol=1e-6)
+    assert len(server.fleet.physics_groups) == 2 and len(server.fleet.group_keys) == 2  # vehicle 0's gains, the others'
+    assert server.fleet.group.tolist() == [1, 0, 0] or server.fleet.group.tolist() == [0, 1, 1]
     # back to the others' value: one group again
-    default = server.params[1]["SD_GEO_KX"]
-    server.router.handle(sink, mavlink.MAVLink_param_set_message(1, 1, b"SD_GEO_KX", default,
+    default = server.params[1]["SD_GEO_KR"]
+    server.router.handle(sink, mavlink.MAVLink_param_set_message(1, 1, b"SD_GEO_KR", default,
                                                                  MAV_PARAM_TYPE_REAL32), None, 0)
-    assert len(server._physics) == 1 and np.all(server._group == 0)
+    assert len(server.fleet.physics_groups) == 1 and np.all(server.fleet.group == 0)
 
 
 # ---------------------------------------------------------------------------- setpoint hygiene
@@ -138,7 +139,7 @@ def _fly(server: SitlServer, seconds: float) -> float:
 
 def test_nan_thrust_is_rejected_not_flown_as_zero():
     """Regression: NaN or infinite thrust in SET_ATTITUDE_TARGET was taken as 0 thrust."""
-    s = SitlServer(SitlConfig(vehicles=1))
+    s = SitlServer(sitl_config(1))
     ap = _hovering_offboard(s)
     z0 = s.state.pos_ned_m[0, 2]
     for thrust in (math.nan, math.inf):
@@ -151,7 +152,7 @@ def test_nan_thrust_is_rejected_not_flown_as_zero():
 
 def test_body_and_yaw_rates_are_clamped():
     """Regression: body rates of 1e30 rad/s were accepted unclamped and tumbled the vehicle."""
-    s = SitlServer(SitlConfig(vehicles=1))
+    s = SitlServer(sitl_config(1))
     ap = _hovering_offboard(s)
     _send(s, 0, mavlink.MAVLink_set_attitude_target_message(0, 1, 1, 128, [1, 0, 0, 0], 1e30, -1e30, 1e30, 0.5))
     lim = ap.knobs.limits()
@@ -167,7 +168,7 @@ def test_body_and_yaw_rates_are_clamped():
 def test_velocity_and_far_position_targets_respect_px4_speed_limits():
     """Regression: velocity or position targets of 1e30 were flown with no speed limit
     (PX4 caps them with MPC_XY_VEL_MAX and MPC_Z_VEL_MAX_UP/DN)."""
-    s = SitlServer(SitlConfig(vehicles=1, params={"MPC_XY_VEL_MAX": 5.0}))
+    s = SitlServer(sitl_config(1, params={"MPC_XY_VEL_MAX": 5.0}))
     ap = _hovering_offboard(s)
     _send(s, 0, _vel_target((1e30, 1e30, -1e30)))
     assert np.hypot(*ap._offb.vel_ned_mps[:2]) == pytest.approx(5.0)
@@ -182,13 +183,13 @@ def test_velocity_and_far_position_targets_respect_px4_speed_limits():
 def test_partial_nan_position_is_invalid_and_stops_the_vehicle():
     """Regression: a position target with some axes NaN was flown; PX4's position controller
     treats it as invalid ("invalid setpoints") and stops."""
-    s = SitlServer(SitlConfig(vehicles=1))
+    s = SitlServer(sitl_config(1, params={"COM_OBL_RC_ACT": 5}))  # Hold on offboard loss (stock 0 descends, drifting)
     ap = _hovering_offboard(s)
     _send(s, 0, _vel_target((3.0, 0.0, 0.0)))
     assert _fly(s, 2.0) > 2.0
     _send(s, 0, _vel_target((0, 0, 0), x=50.0, y=math.nan, z=-5.0, mask=0b110111111000))
     assert s.router._last_reject[0] == "invalid setpoints"
-    _fly(s, 2.0)
+    _fly(s, 3.0)  # (PX4's velocity loop, MPC_XY_VEL_P_ACC 1.8, takes about 3 s to stop from 3 m/s)
     assert np.hypot(*s.state.vel_ned_mps[0, :2]) < 0.3
     assert ap.mode.name == "HOLD"  # no valid setpoint for COM_OF_LOSS_T: the offboard-loss failsafe
 
@@ -256,10 +257,12 @@ def test_sitl_wind_pushes_a_hovering_vehicle_through_drag():
     """Wind configured in the SITL acts as headless: a steady 4 m/s east wind on a vehicle holding
     position tilts it into the wind (thrust balances drag c * 4 m/s)."""
     from companion.params import VehicleParams
-    from sim_bridge.physics import WindConfig
+    from sim_bridge.world.physics import WindConfig
 
     vp = VehicleParams(drag_coeff_n_per_mps=0.0065)
-    s = SitlServer(SitlConfig(vehicles=1, vehicle=vp, wind=WindConfig(steady_ned_mps=(0.0, 4.0, 0.0))))
+    sc = default_scenario()
+    sc = replace(sc, vehicle=vp, physics=replace(sc.physics, wind=WindConfig(steady_ned_mps=(0.0, 4.0, 0.0))))
+    s = SitlServer(sitl_config(1, scenario=sc, params={"COM_OBL_RC_ACT": 5}))  # the loss ends in Hold, holding position
     _hovering_offboard(s)
     _send(s, 0, _vel_target((0, 0, 0)))
     _fly(s, 6.0)

@@ -89,7 +89,7 @@ def test_cli_runs_prints_endpoints_and_stops_cleanly(tmp_path, sig):
 
 def test_cli_rejects_bad_config(tmp_path):
     cfg = tmp_path / "bad.yaml"
-    cfg.write_text("vehicles: 2\nno_such_field: 1\n")
+    cfg.write_text("version: 2\nscenario: {mission: {n_vehicles: 2}}\nno_such_field: 1\n")
     proc = subprocess.run([sys.executable, "-m", "sim_bridge.sitl", "--config", str(cfg)], cwd=REPO,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "no_such_field" in proc.stderr

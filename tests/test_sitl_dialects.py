@@ -21,9 +21,13 @@ from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
 from companion.frames import geodetic_to_ned, ned_to_geodetic  # noqa: E402
 from companion.link.dialects import Mode, dialect_named  # noqa: E402
-from sim_bridge.sitl.config import SitlConfig, SpawnConfig, TimeConfig  # noqa: E402
+from sim_bridge.sitl.background import BackgroundSitl  # noqa: E402
+from sim_bridge.sitl.config import (  # noqa: E402
+    SpawnConfig,
+    TimeConfig,
+    sitl_config,  # noqa: E402
+)
 from sim_bridge.sitl.params_table import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, encode_param_value  # noqa: E402
-from sim_bridge.sitl.server import BackgroundSitl  # noqa: E402
 from sim_bridge.sitl.testing import MavClient, local_endpoints  # noqa: E402
 
 EPOCH_UNIX_S = 1767225600.0
@@ -37,8 +41,8 @@ ACCEPTED, TEMPORARILY_REJECTED, DENIED = 0, 1, 2
 
 
 def _sitl(dialect: str, speed: float = 1.0, **spawn):
-    cfg = SitlConfig(vehicles=N, dialect=dialect, endpoints=local_endpoints(N),
-                     spawn=SpawnConfig(launch="ground", grid_spacing_m=GRID_M, **spawn),
+    cfg = sitl_config(N, launch="ground", dialect=dialect, endpoints=local_endpoints(N),
+                      spawn=SpawnConfig(grid_spacing_m=GRID_M, **spawn),
                      time=TimeConfig(epoch_unix_s=EPOCH_UNIX_S, speed=speed))
     return BackgroundSitl(cfg)
 
@@ -220,14 +224,16 @@ def test_ardupilot_setpoints_only_in_guided_and_guid_timeout_stops_in_guided(ard
         assert mode_heartbeat(c, sysid, GUIDED) is not None
         s = _fly_velocity(c, sysid, 1.0, lambda m, s: m.vx > 0.9, 8)
         t_stop_ms = s[-1].time_boot_ms
-        # the stream stops: the last target is flown until GUID_TIMEOUT (1 s), then the vehicle stops
+        # the stream stops: the last target is flown until GUID_TIMEOUT (1 s), then the vehicle brakes to rest
         s = _track(c, lambda m, s: m.time_boot_ms >= t_stop_ms + 3500)
         early = [m for m in s if t_stop_ms + 300 <= m.time_boot_ms <= t_stop_ms + 700]
         assert early and min(m.vx for m in early) > 0.7
         assert math.hypot(s[-1].vx, s[-1].vy) < 0.1 and abs(s[-1].vz) < 0.1
         x_stop = s[-1].x
         s = _track(c, lambda m, s: m.time_boot_ms >= t_stop_ms + 4500)
-        assert abs(s[-1].x - x_stop) < 0.05  # at rest where it stopped
+        # at rest where it stopped: GUIDED zeroes the velocity target (braking at WPNAV_ACCEL) and
+        # holds zero velocity, not a position, so its velocity integrator lets it creep a few cm
+        assert abs(s[-1].x - x_stop) < 0.1
         hb = c.wait("HEARTBEAT", lambda m: m.get_srcSystem() == sysid, 3)
         assert hb.custom_mode == GUIDED and hb.base_mode & 128  # still GUIDED and armed
         # LAND: straight down, then on the ground (disarm)

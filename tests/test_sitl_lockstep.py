@@ -11,8 +11,11 @@ import pytest
 os.environ.setdefault("MAVLINK20", "1")
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
-from sim_bridge.sitl.config import SitlConfig, TimeConfig  # noqa: E402
-from sim_bridge.sitl.server import BackgroundSitl  # noqa: E402
+from sim_bridge.sitl.background import BackgroundSitl  # noqa: E402
+from sim_bridge.sitl.config import (
+    TimeConfig,  # noqa: E402
+    sitl_config,  # noqa: E402
+)
 from sim_bridge.sitl.testing import MavClient, local_endpoints  # noqa: E402
 
 N = 2
@@ -31,7 +34,7 @@ def _setpoint(c: MavClient, k: int, i: int) -> None:
 
 
 def _fly(seed: int) -> tuple[np.ndarray, list[int]]:
-    cfg = SitlConfig(vehicles=N, seed=seed, endpoints=local_endpoints(N), time=TimeConfig(lockstep=True))
+    cfg = sitl_config(N, seed=seed, endpoints=local_endpoints(N), time=TimeConfig(lockstep=True))
     bg = BackgroundSitl(cfg)
     server = bg.start()
     clients = []

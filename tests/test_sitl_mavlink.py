@@ -15,9 +15,9 @@ from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
 from companion.link.dialects import Mode, dialect_named  # noqa: E402
-from sim_bridge.sitl.config import SitlConfig  # noqa: E402
+from sim_bridge.sitl.background import BackgroundSitl  # noqa: E402
+from sim_bridge.sitl.config import sitl_config  # noqa: E402
 from sim_bridge.sitl.params_table import MAV_PARAM_TYPE_INT32, MAV_PARAM_TYPE_REAL32, encode_param_value  # noqa: E402
-from sim_bridge.sitl.server import BackgroundSitl  # noqa: E402
 from sim_bridge.sitl.testing import MavClient, local_endpoints, pack_frame, running_sitl, vehicle_client  # noqa: E402
 
 PX4 = dialect_named("px4")
@@ -143,13 +143,18 @@ def test_full_parameter_list_and_set(sitl):
         c.close()
 
 
-def test_offboard_loss_hold_then_land(sitl):
+def test_offboard_loss_flies_the_setpoint_for_com_of_loss_t_then_holds_and_never_lands(sitl):
+    """PX4 with COM_OBL_RC_ACT 5: Hold COM_OF_LOSS_T after the last setpoint, CRITICAL, and it
+    stays in Hold, airborne (PX4's Hold never lands by itself); Land (4) lands."""
     k, sysid = 1, 2
     c = vehicle_client(sitl, k)
     try:
-        for name, value in (("COM_OF_LOSS_T", 0.5), ("SD_OBL_LAND_T", 0.5)):
-            c.mav.param_set_send(sysid, 1, name.encode(), value, MAV_PARAM_TYPE_REAL32)
-            assert c.wait("PARAM_VALUE", lambda m: m.param_id == name and m.param_value == value, 3)
+        c.mav.param_set_send(sysid, 1, b"COM_OF_LOSS_T", 0.5, MAV_PARAM_TYPE_REAL32)
+        assert c.wait("PARAM_VALUE", lambda m: m.param_id == "COM_OF_LOSS_T" and m.param_value == 0.5, 3)
+        c.mav.param_set_send(sysid, 1, b"COM_OBL_RC_ACT", encode_param_value(5, MAV_PARAM_TYPE_INT32),
+                             MAV_PARAM_TYPE_INT32)
+        assert c.wait("PARAM_VALUE", lambda m: m.param_id == "COM_OBL_RC_ACT", 3)
+        assert sitl.params[k]["COM_OBL_RC_ACT"] == 5
         home = sitl.home_ned_m[k]
 
         def setpoint():
@@ -174,8 +179,20 @@ def test_offboard_loss_hold_then_land(sitl):
         t_stop = time.monotonic()
         hb = c.wait("HEARTBEAT", lambda m: m.custom_mode == PX4.custom_mode(Mode.HOLD), 3)
         t_hold = time.monotonic()
-        assert hb is not None
+        assert hb is not None and hb.system_status == 5  # CRITICAL: in failsafe
         assert t_hold - t_stop <= 0.5 + 0.2
+        # Hold for ever: a few seconds on, still Hold and in the air
+        assert c.wait("HEARTBEAT", lambda m: m.custom_mode != PX4.custom_mode(Mode.HOLD), 4) is None
+        assert sitl.autopilots[k].mode == Mode.HOLD and not sitl.autopilots[k].landed
+        # COM_OBL_RC_ACT 4: the next loss lands
+        c.mav.param_set_send(sysid, 1, b"COM_OBL_RC_ACT", encode_param_value(4, MAV_PARAM_TYPE_INT32),
+                             MAV_PARAM_TYPE_INT32)
+        assert c.wait("PARAM_VALUE", lambda m: m.param_id == "COM_OBL_RC_ACT", 3)
+        setpoint()
+        assert c.command(sysid, 176, 1, 6, 0).result == mavlink.MAV_RESULT_ACCEPTED
+        for _ in range(5):
+            setpoint()
+            time.sleep(0.05)
         assert c.wait("HEARTBEAT", lambda m: m.custom_mode == PX4.custom_mode(Mode.LAND), 3) is not None
         assert sitl.autopilots[k].mode == Mode.LAND
     finally:
@@ -248,7 +265,7 @@ def test_shared_gcs_endpoint_carries_all_vehicles():
     from sim_bridge.sitl.testing import free_udp_base_port
 
     ep = dataclasses.replace(local_endpoints(3), gcs_enabled=True, gcs_remote_port=free_udp_base_port(1))
-    bg = BackgroundSitl(SitlConfig(vehicles=3, endpoints=ep))
+    bg = BackgroundSitl(sitl_config(3, endpoints=ep))
     server = bg.start()
     c = MavClient(ep.gcs_remote_port)
     try:

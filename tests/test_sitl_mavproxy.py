@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from sim_bridge.sitl.config import SitlConfig
-from sim_bridge.sitl.server import BackgroundSitl
+from sim_bridge.sitl.background import BackgroundSitl
+from sim_bridge.sitl.config import sitl_config
 from sim_bridge.sitl.testing import local_endpoints
 
 MAVPROXY = shutil.which("mavproxy.py", path=str(Path(sys.executable).parent)) or shutil.which("mavproxy.py")
@@ -33,7 +33,7 @@ def _until(pred, timeout_s: float, what: str, output: list[str]) -> None:
 
 @pytest.mark.timeout(120)
 def test_mavproxy_sets_param_arms_takes_off_lands(tmp_path):
-    with BackgroundSitl(SitlConfig(vehicles=N, endpoints=local_endpoints(N))) as sitl:
+    with BackgroundSitl(sitl_config(N, endpoints=local_endpoints(N))) as sitl:
         ap = sitl.autopilots[K]
         port = sitl.cfg.endpoints.vehicle_remote_port(K)
         proc = subprocess.Popen(

@@ -15,8 +15,8 @@ from mavsdk.asyncio.plugins.param import ParamAsync  # noqa: E402
 from mavsdk.asyncio.plugins.telemetry import TelemetryAsync  # noqa: E402
 
 from sim_bridge.sitl.autopilot import Mode  # noqa: E402
-from sim_bridge.sitl.config import SitlConfig  # noqa: E402
-from sim_bridge.sitl.server import BackgroundSitl  # noqa: E402
+from sim_bridge.sitl.background import BackgroundSitl  # noqa: E402
+from sim_bridge.sitl.config import sitl_config  # noqa: E402
 from sim_bridge.sitl.testing import local_endpoints  # noqa: E402
 
 N, K = 3, 2
@@ -24,7 +24,7 @@ N, K = 3, 2
 
 @pytest.fixture(scope="module")
 def sitl():
-    bg = BackgroundSitl(SitlConfig(vehicles=N, endpoints=local_endpoints(N)))
+    bg = BackgroundSitl(sitl_config(N, endpoints=local_endpoints(N)))
     server = bg.start()
     yield server
     bg.stop()

@@ -7,20 +7,22 @@ import struct
 import numpy as np
 import pytest
 
+from companion.config import replace
 from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target
 from companion.params import InnerLoopConfig
-from sim_bridge.carrier import AttitudeDistribution, CarrierConfig
 from sim_bridge.sitl.autopilot import ACCEPTED, TEMPORARILY_REJECTED, Mode
-from sim_bridge.sitl.config import SitlConfig, SpawnConfig
+from sim_bridge.sitl.autopilots import autopilot_named
+from sim_bridge.sitl.config import default_scenario, sitl_config
 from sim_bridge.sitl.params_table import (
     MAV_PARAM_TYPE_INT32,
     MAV_PARAM_TYPE_REAL32,
     ParamTable,
     decode_param_value,
-    default_specs,
     encode_param_value,
 )
 from sim_bridge.sitl.server import SitlServer
+from sim_bridge.world.autopilot_model import G_POS_P_XY
+from sim_bridge.world.carrier import AttitudeDistribution, CarrierConfig
 
 NAN = math.nan
 I3 = np.eye(3)
@@ -31,7 +33,7 @@ def test_param_bytewise_encoding_and_table_checks():
     assert struct.pack("<f", wire) == struct.pack("<i", 2)
     assert decode_param_value(wire, MAV_PARAM_TYPE_INT32) == 2
     assert encode_param_value(2.5, MAV_PARAM_TYPE_REAL32) == 2.5
-    t = ParamTable(default_specs(InnerLoopConfig(), 7))
+    t = ParamTable(autopilot_named("px4").param_specs(InnerLoopConfig(), 7, 0.5))
     assert [s.name for s in t.specs] == sorted(s.name for s in t.specs)
     assert t["MAV_SYS_ID"] == 7
     assert t.set_wire("NOPE", 1.0, MAV_PARAM_TYPE_REAL32) is None
@@ -39,7 +41,9 @@ def test_param_bytewise_encoding_and_table_checks():
     assert not t.set("MPC_TILTMAX_AIR", 95.0)  # out of range
     t.set_wire("COM_OF_LOSS_T", NAN, MAV_PARAM_TYPE_REAL32)
     assert t["COM_OF_LOSS_T"] == 1.0
-    assert t.set("SD_GEO_KX", 2.0) and t.inner_loop(InnerLoopConfig()).geometric.kx_per_s2 == 2.0
+    assert t.set("SD_GEO_KR", 150.0) and t.inner_loop(InnerLoopConfig()).geometric.kR_per_s2 == 150.0
+    assert t.index_of("SD_GEO_KX") is None and t.index_of("SD_OBL_LAND_T") is None  # (its own loops; Hold never lands)
+    assert t["COM_OBL_RC_ACT"] == 0 and t["MPC_XY_VEL_I_ACC"] == 0.4  # PX4's defaults
 
 
 @pytest.mark.parametrize("mask, frame, expect", [
@@ -89,8 +93,10 @@ def test_attitude_target_masks():
     assert isinstance(decode_attitude_target(7, (NAN, 0, 0, 0), (0, 0, 0), 0.5), Rejected)
 
 
-def _server(**kw) -> SitlServer:
-    return SitlServer(SitlConfig(**kw))
+def _server(vehicles: int = 1, seed: int = 0, launch: str = "ground", carrier: CarrierConfig | None = None,
+            **kw) -> SitlServer:
+    sc = default_scenario() if carrier is None else replace(default_scenario(), carrier=carrier)
+    return SitlServer(sitl_config(vehicles, seed=seed, launch=launch, scenario=sc, **kw))
 
 
 def _run_until(server: SitlServer, pred, max_s: float) -> bool:
@@ -101,34 +107,139 @@ def _run_until(server: SitlServer, pred, max_s: float) -> bool:
     return False
 
 
-def test_takeoff_hold_offboard_loss_land_disarm_without_sockets():
-    s = _server(vehicles=2, params={"COM_OF_LOSS_T": 0.3, "SD_OBL_LAND_T": 0.4, "COM_DISARM_LAND": 0.3})
+def _airborne_in_offboard(dialect: str = "px4", **params):
+    """Vehicle 1 of 2 taken off to 2.5 m (PX4: Takeoff then Hold; ArduPilot: in GUIDED) and
+    flying offboard a velocity of 1 m/s north at 2.5 m; returns (server, autopilot)."""
+    s = _server(vehicles=2, dialect=dialect, params=params)
     ap = s.autopilots[1]
-    assert ap.command_set_mode(1, 6, 0, s.sim_s) == TEMPORARILY_REJECTED  # no setpoint stream
+    guided = dialect == "ardupilot"
+    if guided:
+        assert ap.command_set_mode(1, 4, 0, s.sim_s) == ACCEPTED
+    else:
+        assert ap.command_set_mode(1, 6, 0, s.sim_s) == TEMPORARILY_REJECTED  # no setpoint stream
     assert ap.command_arm(1, NAN, s.sim_s) == ACCEPTED
-    assert ap.command_takeoff(NAN, s.home_alt_amsl_m, s.sim_s) == ACCEPTED
+    assert ap.command_takeoff(NAN if not guided else 2.5, s.home_alt_amsl_m, s.sim_s) == ACCEPTED
     s.after_change(1)
-    assert _run_until(s, lambda: ap.mode == Mode.HOLD, 6)
-    assert s.state.pos_ned_m[1, 2] == pytest.approx(-2.5, abs=0.15)  # MIS_TAKEOFF_ALT
+    assert _run_until(s, lambda: not ap.landed and ap.mode != Mode.TAKEOFF, 8)
+    assert _run_until(s, lambda: abs(s.state.pos_ned_m[1, 2] + 2.5) < 0.05 and np.abs(s.state.vel_ned_mps[1]).max() < 0.05, 10)
     assert s.autopilots[0].landed and not s.autopilots[0].armed  # the other vehicle untouched
-    sp = decode_position_target(3135, 1, (0,) * 3, (0,) * 3, (0, 0, 0), 0, 0, I3)
-    ap.on_offboard_setpoint(sp, s.sim_s)
-    assert ap.command_set_mode(1, 6, 0, s.sim_s) == ACCEPTED
+    start = s.state.pos_ned_m[1] - ap.origin_ned_m  # (setpoints are in the vehicle's own EKF frame)
+
+    def stream(seconds: float) -> None:  # a position + velocity target moving north at 1 m/s, at 50 Hz
+        for _ in range(int(round(seconds / 0.02))):
+            x = start[0] + 1.0 * (s.sim_s - t0)
+            ap.on_offboard_setpoint(decode_position_target(2496, 1, (x, start[1], start[2]), (1, 0, 0), (0, 0, 0), 0, 0,
+                                                           I3), s.sim_s)
+            s.after_change(1)
+            _run_until(s, lambda: False, 0.02)
+    t0 = s.sim_s
+    stream(0.02)
+    if not guided:
+        assert ap.command_set_mode(1, 6, 0, s.sim_s) == ACCEPTED
     s.after_change(1)
-    t_last = s.sim_s
+    stream(6.0)
+    assert ap.mode == Mode.OFFBOARD and s.state.vel_ned_mps[1, 0] == pytest.approx(1.0, abs=0.1)
+    return s, ap
+
+
+def _last_setpoint_s(ap) -> float:
+    return ap._offb_last_t  # (when the autopilot took the last setpoint)
+
+
+def _texts(ap) -> list[str]:
+    """Every STATUSTEXT the autopilot queues from now on (the server drains ap.events)."""
+    out: list[str] = []
+    event = ap.event
+    ap.event = lambda severity, text: (out.append(text), event(severity, text))[1]
+    return out
+
+
+def test_px4_offboard_loss_flies_the_last_setpoint_then_holds_for_ever_with_com_obl_rc_act_5():
+    s, ap = _airborne_in_offboard(COM_OF_LOSS_T=0.5, COM_OBL_RC_ACT=5)
+    t_last, x_last = _last_setpoint_s(ap), s.state.pos_ned_m[1, 0]
+    texts = _texts(ap)
+    # the last setpoint keeps acting, as it was: its position stays where it was (PX4 does not move it)
     assert _run_until(s, lambda: ap.mode != Mode.OFFBOARD, 2)
-    assert ap.mode == Mode.HOLD and s.sim_s - t_last <= 0.3 + 0.05
-    assert _run_until(s, lambda: ap.mode == Mode.LAND, 2) and s.sim_s - t_last <= 0.3 + 0.4 + 0.1
+    assert ap.mode == Mode.HOLD and 0.5 - 1e-9 < s.sim_s - t_last <= 0.5 + 0.02 + 1e-9
+    assert ap.system_status == 5  # CRITICAL: in failsafe
+    assert "Failsafe: offboard signal lost, Hold" in texts
+    # Hold: brake and stay, for ever (PX4's Hold never lands by itself)
+    hold = ap.sp.pos_ned_m[0].copy()
+    assert x_last < hold[0] < x_last + 1.0
+    assert not _run_until(s, lambda: ap.mode != Mode.HOLD or ap.landed, 30)
+    assert ap.armed and np.abs(s.state.pos_ned_m[1] - hold).max() < 0.02 and np.abs(s.state.vel_ned_mps[1]).max() < 0.01
+
+
+def test_px4_offboard_loss_lands_with_com_obl_rc_act_4():
+    s, ap = _airborne_in_offboard(COM_OF_LOSS_T=0.3, COM_OBL_RC_ACT=4, COM_DISARM_LAND=0.3)
+    t_last = _last_setpoint_s(ap)
+    assert _run_until(s, lambda: ap.mode != Mode.OFFBOARD, 2)
+    assert ap.mode == Mode.LAND and s.sim_s - t_last <= 0.3 + 0.02 + 1e-9 and ap.system_status == 5
+    x_land = ap.sp.pos_ned_m[0, 0]
+    assert _run_until(s, lambda: s.state.pos_ned_m[1, 2] > -1.0, 5)
+    assert s.state.vel_ned_mps[1, 2] == pytest.approx(0.7, abs=0.05)  # descending at MPC_LAND_SPEED
     assert _run_until(s, lambda: not ap.armed, 15)
     assert ap.landed and s.state.pos_ned_m[1, 2] == pytest.approx(0.0, abs=1e-6)
+    # where it stopped, holding position (PX4's position loop has not quite closed the braking
+    # estimate's gap when it touches down)
+    assert s.state.pos_ned_m[1, 0] == pytest.approx(x_land, abs=0.25)
+
+
+def test_px4_offboard_loss_with_the_stock_com_obl_rc_act_descends_drifting_without_rc():
+    """COM_OBL_RC_ACT 0 (Position, the default) with no RC: PX4 reports Position and descends at
+    MPC_LAND_SPEED with no horizontal control: the vehicle keeps drifting north at the speed
+    it had (no wind, no drag here), lands and disarms."""
+    s, ap = _airborne_in_offboard(COM_OF_LOSS_T=0.5, COM_DISARM_LAND=0.5)
+    t_last, texts = _last_setpoint_s(ap), _texts(ap)
+    assert _run_until(s, lambda: ap.mode != Mode.OFFBOARD, 2)
+    assert ap.mode == Mode.POSITION and ap.system_status == 5 and 0.5 - 1e-9 < s.sim_s - t_last <= 0.52 + 1e-9
+    assert "Failsafe: offboard signal lost, Position: no RC, descending" in texts
+    x0, vx0 = s.state.pos_ned_m[1, 0], s.state.vel_ned_mps[1, 0]
+    assert 0.5 < vx0 < 1.0  # (for COM_OF_LOSS_T the last setpoint's position stayed put: it began to brake)
+    assert _run_until(s, lambda: s.state.pos_ned_m[1, 2] > -1.0, 5)
+    assert s.state.vel_ned_mps[1, 2] == pytest.approx(0.7, abs=0.05)  # MPC_LAND_SPEED (the step overshoots a little)
+    assert s.state.vel_ned_mps[1, 0] == pytest.approx(vx0, abs=0.1)  # still drifting
+    assert _run_until(s, lambda: not ap.armed, 15)
+    assert ap.landed and ap.mode == Mode.POSITION
+    assert s.state.pos_ned_m[1, 0] - x0 > 2.0  # it drifted metres while descending
+
+
+def test_ardupilot_guid_timeout_moves_the_target_on_then_holds_in_guided_for_ever():
+    """A position + velocity target (1 m/s north) with an acceleration (0.5 m/s^2 north): after
+    the last setpoint ArduPilot moves the target on along both until GUID_TIMEOUT, then the
+    target stops there and the vehicle holds it in GUIDED, armed, for ever."""
+    s, ap = _airborne_in_offboard("ardupilot", GUID_TIMEOUT=1.0)
+    local = s.state.pos_ned_m[1] - ap.origin_ned_m
+    ap.on_offboard_setpoint(decode_position_target(2048, 1, (local[0], local[1], -2.5), (1, 0, 0), (0.5, 0, 0), 0, 0, I3),
+                            s.sim_s)
+    s.after_change(1)
+    t_last, p0, texts = s.sim_s, ap.sp.pos_ned_m[0, 0], _texts(ap)
+    for tau in (0.2, 0.5, 0.8):  # the published target moves on: p0 + v tau + a tau^2 / 2, v0 + a tau
+        _run_until(s, lambda: s.sim_s >= t_last + tau - 1e-9, 2)
+        elapsed = ap._last_tick_t - t_last
+        assert ap.mode == Mode.OFFBOARD
+        assert ap.sp.pos_ned_m[0, 0] == pytest.approx(p0 + elapsed + 0.25 * elapsed ** 2, abs=1e-9)
+        assert ap.sp.vel_ned_mps[0, 0] == pytest.approx(1.0 + 0.5 * elapsed, abs=1e-9)
+    assert _run_until(s, lambda: ap.sp_version and np.isnan(ap.sp.vel_ned_mps[0, 0]), 1)
+    assert 1.0 - 1e-9 < s.sim_s - t_last <= 1.02 + 1e-9
+    x_stop = p0 + 1.0 + 0.25
+    assert ap.sp.pos_ned_m[0, 0] == pytest.approx(x_stop, abs=1e-9)  # the target stopped where it had moved on to
+    assert ap.mode == Mode.OFFBOARD and ap.armed and "GUIDED: setpoint timeout, stopping" in texts
+    assert not _run_until(s, lambda: ap.mode != Mode.OFFBOARD or ap.landed or not ap.armed, 30)  # for ever
+    assert s.state.pos_ned_m[1, 0] == pytest.approx(x_stop, abs=0.02) and np.abs(s.state.vel_ned_mps[1]).max() < 0.01
 
 
 def test_table_gains_drive_the_physics():
     s = _server(vehicles=2)
-    s.params[0].set("SD_GEO_KX", 1.0)
+    s.params[0].set("SD_GEO_KR", 150.0)
     s.after_change(0)
-    assert len(s._physics) == 2 and s._group[0] != s._group[1]
-    assert s._physics[s._group_keys[s._group[0]]].inner.geometric.kx_per_s2 == 1.0
+    assert len(s.fleet.physics_groups) == 2 and s.fleet.group[0] != s.fleet.group[1]
+    assert s.fleet.physics_groups[s.fleet.group_keys[s.fleet.group[0]]].inner.geometric.kR_per_s2 == 150.0
+    # the position loops' gains are per vehicle, from its own table (no physics group of their own)
+    s.params[1].set("MPC_XY_P", 0.5)
+    s.after_change(1)
+    assert s.fleet.loop.gains[1, G_POS_P_XY] == 0.5 and s.fleet.loop.gains[0, G_POS_P_XY] == 0.95
+    assert len(s.fleet.physics_groups) == 2
 
 
 def test_carrier_release_schedule_and_throw_recovery():
@@ -136,7 +247,7 @@ def test_carrier_release_schedule_and_throw_recovery():
                             release_interval_s=0.5, attitude=AttitudeDistribution(
                                 kind="euler", roll_max_deg=60, pitch_max_deg=40, yaw_max_deg=180,
                                 body_rate_std_radps=1.0))
-    s = _server(vehicles=3, seed=3, spawn=SpawnConfig(launch="carrier"), carrier=carrier)
+    s = _server(vehicles=3, seed=3, launch="carrier", carrier=carrier)
     aps = s.autopilots
     assert all(ap.docked for ap in aps) and aps[0].command_arm(1, NAN, 0.0) == ACCEPTED  # armed for the throw
     assert aps[0].system_status == 8 and not aps[0].needs_physics  # motors locked until the release
@@ -153,7 +264,7 @@ def test_carrier_release_schedule_and_throw_recovery():
 
 
 def test_carrier_release_on_command():
-    s = _server(vehicles=2, spawn=SpawnConfig(launch="carrier"), carrier=CarrierConfig(release="command"))
+    s = _server(vehicles=2, launch="carrier", carrier=CarrierConfig(release="command"))
     assert not _run_until(s, lambda: not s.autopilots[1].docked, 0.5)
     assert s.autopilots[1].command_release() == ACCEPTED
     s.step_once()

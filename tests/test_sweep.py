@@ -6,7 +6,7 @@ from pathlib import Path
 
 import pytest
 
-from sim_bridge.sweep import SweepRun, markdown, run_one, run_sweep, summary, write_results
+from sim_bridge.runs.sweep import SweepRun, markdown, run_one, run_sweep, summary, write_results
 
 ROOT = Path(__file__).resolve().parents[1]
 SMALL = str(ROOT / "configs" / "small_6.yaml")
@@ -76,7 +76,7 @@ def test_the_target_counts_healthy_completion_without_collision_and_failures_are
 
 
 def test_one_worker_needs_no_dask_and_a_bad_config_fails_once(tmp_path):
-    code = ("import sys; from sim_bridge.sweep import run_sweep;"
+    code = ("import sys; from sim_bridge.runs.sweep import run_sweep;"
             f"run_sweep({SMALL!r}, [5], workers=1, progress=False);"
             "assert 'distributed' not in sys.modules and 'dask' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True, cwd=ROOT, timeout=300)

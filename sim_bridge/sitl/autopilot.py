@@ -4,9 +4,11 @@ One Autopilot per simulated vehicle, speaking one autopilot dialect (PX4 or
 ArduCopter, companion.link.dialects): the dialect gives the mode numbers and
 flags; this module gives the behaviour, with the differences that matter to a
 companion (docs/sitl.md): PX4 stores offboard setpoints in any mode, needs a live
-stream to enter OFFBOARD and fails over to Hold then Land; ArduPilot flies
-setpoints only in GUIDED, enters GUIDED without a stream, and at GUID_TIMEOUT
-stops (or levels) but stays in GUIDED.
+stream to enter OFFBOARD, flies the last setpoint for COM_OF_LOSS_T and then does what
+COM_OBL_RC_ACT says; ArduPilot flies setpoints only in GUIDED, enters GUIDED without a
+stream, moves its target on along the last velocity and acceleration until GUID_TIMEOUT,
+then stops (or levels) but stays in GUIDED. What each does on loss is the companion
+dialect's LossBehaviour for the vehicle's parameters (AutopilotBehaviour.offboard_lost).
 
 It reads its vehicle's row of the shared FleetState (world NED frame) and
 publishes the inner-loop setpoint in `sp` (a one-row FleetSetpoint, world frame;
@@ -21,9 +23,8 @@ import math
 
 import numpy as np
 
-from companion.frames import rot_to_quat_wxyz
-from companion.link.dialects import AutopilotDialect, Mode
-from companion.link.dialects.ardupilot import ANGLE_BOOST_COS_MIN, BRAKE, GUIDED, LAND, LOITER, THROW
+from companion.frames import euler_zyx_to_quat_wxyz, rot_to_quat_wxyz
+from companion.link.dialects import Mode
 from companion.link.dialects.base import (
     LANDED_IN_AIR,
     LANDED_LANDING,
@@ -31,46 +32,66 @@ from companion.link.dialects.base import (
     LANDED_TAKEOFF,
     STATE_ACTIVE,
     STATE_CRITICAL,
-    STATE_FLIGHT_TERMINATION,
     STATE_STANDBY,
+    CarryOn,
 )
+from companion.link.enums import MavResult, MavSeverity
 from companion.link.setpoints import AttitudeSetpoint, TrajectorySetpoint
-from companion.params import GRAVITY_MPS2
 from companion.state import FleetSetpoint, FleetState
-from sim_bridge.autopilot_model import hold_point, throw_recovered
-from sim_bridge.sitl.params_table import Knobs, ParamTable
+from sim_bridge.sitl.autopilots import AutopilotBehaviour
+from sim_bridge.sitl.params_table import ParamTable
+from sim_bridge.world.autopilot_model import (
+    LAND_DETECT_S,
+    THROW_UPRIGHT_COS,
+    THROW_UPRIGHT_THRUST,
+    braked_velocity,
+    hold_point,
+    on_ground_and_slow,
+    throw_recovered,
+)
 
-# MAV_RESULT
-ACCEPTED, TEMPORARILY_REJECTED, DENIED, UNSUPPORTED, FAILED = 0, 1, 2, 3, 4
-# MAV_SEVERITY
-SEV_CRITICAL, SEV_WARNING, SEV_NOTICE, SEV_INFO = 2, 4, 5, 6
+ACCEPTED, TEMPORARILY_REJECTED, DENIED, UNSUPPORTED, FAILED = (
+    MavResult.MAV_RESULT_ACCEPTED, MavResult.MAV_RESULT_TEMPORARILY_REJECTED, MavResult.MAV_RESULT_DENIED,
+    MavResult.MAV_RESULT_UNSUPPORTED, MavResult.MAV_RESULT_FAILED)
+SEV_CRITICAL, SEV_WARNING, SEV_NOTICE, SEV_INFO = (
+    MavSeverity.MAV_SEVERITY_CRITICAL, MavSeverity.MAV_SEVERITY_WARNING, MavSeverity.MAV_SEVERITY_NOTICE,
+    MavSeverity.MAV_SEVERITY_INFO)
 FORCE_MAGIC = 21196
+"""MAV_CMD_COMPONENT_ARM_DISARM param2 that forces arming or disarming (MAVLink's own magic number)."""
 
-ON_GROUND_TOL_M = 0.02
 AIRBORNE_HEIGHT_M = 0.15
-LAND_DETECT_S = 0.2
-LAND_SPEED_MAX_MPS = 0.3
 SETTABLE = frozenset({Mode.POSITION, Mode.OFFBOARD, Mode.TAKEOFF, Mode.HOLD, Mode.LAND, Mode.THROW})
 """Modes a DO_SET_MODE may ask for (no RC: Manual and Return are refused)."""
-_NEXT_MODE = {GUIDED: Mode.OFFBOARD, LOITER: Mode.POSITION, BRAKE: Mode.HOLD, LAND: Mode.LAND, THROW: Mode.THROW}
 
 
 class Autopilot:
-    def __init__(self, index: int, sysid: int, params: ParamTable, dialect: AutopilotDialect, state: FleetState,
+    """The flight state machine of one simulated vehicle (module docstring): modes, arming,
+    take-off, landing, failsafes and offboard setpoints, with its family's behaviour.
+
+    Args:
+        index: the vehicle's row in `state`; sysid: its MAVLink system id.
+        params: its parameter table; behaviour: its autopilot family.
+        state: the fleet's true state (world NED frame), read for this row.
+        ground_z_m: NED z of the ground, m; home_ned_m: its home position (world NED, m).
+        docked: on the carrier (waits for release); now_s: simulation time at creation, s.
+    """
+
+    def __init__(self, index: int, sysid: int, params: ParamTable, behaviour: AutopilotBehaviour, state: FleetState,
                  ground_z_m: float, home_ned_m: np.ndarray, docked: bool = False, now_s: float = 0.0):
         self.index = index
         self.sysid = sysid
         self.params = params
-        self.knobs = Knobs(params, dialect)
-        self.dialect = dialect
-        self.px4 = dialect.name == "px4"
+        self.behaviour = behaviour
+        """How this vehicle's autopilot family behaves (sim_bridge/sitl/autopilots/)."""
+        self.knobs = behaviour.knobs(params)
+        self.dialect = behaviour.dialect
         self.state = state
         self.ground_z_m = ground_z_m
         self.home_ned_m = np.asarray(home_ned_m, dtype=float)
         self.origin_ned_m: np.ndarray | None = None
         """EKF origin in the world frame; None until the first GNSS fix."""
         self.armed = False
-        self.mode = Mode.THROW if docked and dialect.carrier_mode == Mode.THROW else Mode.HOLD
+        self.mode = Mode.THROW if docked and self.dialect.carrier_mode == Mode.THROW else Mode.HOLD
         self.docked = docked
         self.throwing = False
         self.release_requested = False
@@ -87,6 +108,22 @@ class Autopilot:
         self._offb: TrajectorySetpoint | AttitudeSetpoint | None = None
         self._offb_last_t = -math.inf
         self._offb_timed_out = False
+        self._stop_pos: np.ndarray | None = None
+        """Where a timed-out offboard target stopped (ArduPilot: the moved-on target), world NED."""
+        self._stop_vel: tuple[np.ndarray, float, float] | None = None
+        """A timed-out velocity target (no position): (its velocity, when it timed out, when it
+        is zero); it is
+        brought to zero at the autopilot's braking limits and no position is held (ArduPilot
+        GUIDED: the velocity target is zeroed through the kinematic shaping, position is not
+        stabilised)."""
+        self._descend_drift = False
+        """Failsafe descent with no horizontal control (PX4 COM_OBL_RC_ACT 0-2 without RC)."""
+        self._uprighting = True
+        """A throw is still being uprighted on attitude alone (behaviour.throw_uprights_first)."""
+        self._now_s = now_s
+        self.loop_reset = True
+        """Set when the autopilot's position loops start afresh (arming, release); the fleet
+        clears their memory and this flag."""
         self._failsafe_t: float | None = None
         self._ground_since_t: float | None = now_s
         self._landed_t = now_s
@@ -135,8 +172,8 @@ class Autopilot:
     def system_status(self) -> int:
         if self._failsafe_t is not None:
             return STATE_CRITICAL
-        if self.armed and self.docked and self.px4:
-            return STATE_FLIGHT_TERMINATION  # as PX4 while throw launch holds the motors locked
+        if self.armed and self.docked and self.behaviour.armed_docked_state is not None:
+            return self.behaviour.armed_docked_state
         return STATE_ACTIVE if self.armed else STATE_STANDBY
 
     @property
@@ -164,13 +201,13 @@ class Autopilot:
         return self._offb is not None and now_s - self._offb_last_t <= self.knobs.offboard_timeout_s
 
     def prearm_failure(self, now_s: float) -> str | None:
-        if self.docked and not (self.knobs.throw_enabled and (self.px4 or self.mode == Mode.THROW)):
+        if self.docked and not self.behaviour.may_arm_docked(self.params, self.mode):
             return "docked on carrier"  # (with throw launch set up, arming on the carrier is the normal flow)
         if not self.has_fix:
             return "no GNSS fix"
         if self._fence_breached:
             return "geofence breached"
-        if self.px4 and self.mode == Mode.OFFBOARD and not self.offboard_live(now_s):
+        if self.behaviour.offboard_needs_stream and self.mode == Mode.OFFBOARD and not self.offboard_live(now_s):
             return "no offboard signal"
         return None
 
@@ -186,30 +223,26 @@ class Autopilot:
             if why is None and not self.landed and not force and not self.docked:
                 why = "not landed"
             if why is not None and not force:
-                self._event(SEV_CRITICAL, f"Arming denied: {why}")
+                self.event(SEV_CRITICAL, f"Arming denied: {why}")
                 return TEMPORARILY_REJECTED
             self._arm(now_s)
             return ACCEPTED
         if not self.armed:
             return ACCEPTED
         if not self.landed and not force:
-            self._event(SEV_CRITICAL, "Disarming denied: not landed")
+            self.event(SEV_CRITICAL, "Disarming denied: not landed")
             return TEMPORARILY_REJECTED
         self._disarm(now_s, "Disarmed by external command")
         return ACCEPTED
 
     def command_takeoff(self, param7: float, home_alt_amsl_m: float, now_s: float) -> int:
-        """PX4: param7 = AMSL altitude (NaN: MIS_TAKEOFF_ALT), any mode. ArduPilot: param7 =
-        altitude above home (0/NaN: PILOT_TKOFF_ALT), armed in GUIDED only."""
+        """MAV_CMD_NAV_TAKEOFF; what param7 means, and when it is refused, is the
+        autopilot's (AutopilotBehaviour.takeoff_alt_rel_m)."""
         if self.docked:
             return TEMPORARILY_REJECTED
-        if self.px4:
-            alt_rel = param7 - home_alt_amsl_m if math.isfinite(param7) else self.knobs.takeoff_alt_m
-        else:
-            if self.mode != Mode.OFFBOARD or not self.armed:
-                self._event(SEV_CRITICAL, "Takeoff: arm in GUIDED first")
-                return FAILED
-            alt_rel = param7 if math.isfinite(param7) and param7 > 0 else self.knobs.takeoff_alt_m
+        alt_rel = self.behaviour.takeoff_alt_rel_m(self, param7, home_alt_amsl_m)
+        if alt_rel is None:
+            return FAILED
         if alt_rel < 0.1:
             return DENIED
         self._tko_target_z = self.home_ned_m[2] - alt_rel
@@ -235,17 +268,17 @@ class Autopilot:
             self._failsafe_t = None
             return ACCEPTED
         if mode == Mode.THROW and self.armed:
-            self._event(SEV_CRITICAL, "Throw: select before arming")
+            self.event(SEV_CRITICAL, "Throw: select before arming")
             return TEMPORARILY_REJECTED
         if mode == Mode.OFFBOARD and not self.has_fix:
             return TEMPORARILY_REJECTED
-        if mode == Mode.OFFBOARD and self.px4 and not self.offboard_live(now_s):
-            self._event(SEV_CRITICAL, "Switching to Offboard is currently not available")
+        if mode == Mode.OFFBOARD and self.behaviour.offboard_needs_stream and not self.offboard_live(now_s):
+            self.event(SEV_CRITICAL, "Switching to Offboard is currently not available")
             return TEMPORARILY_REJECTED
         if mode == Mode.TAKEOFF:
             self._tko_target_z = self.home_ned_m[2] - self.knobs.takeoff_alt_m
-        if mode == Mode.OFFBOARD and not self.px4:
-            self._offb = None  # GUIDED starts holding; only setpoints sent from now on count
+        if mode == Mode.OFFBOARD and self.behaviour.offboard_entry_clears_setpoint:
+            self._offb = None  # (ArduPilot's GUIDED starts holding; only setpoints sent from now on count)
         self._set_mode(mode, now_s)
         return ACCEPTED
 
@@ -257,17 +290,17 @@ class Autopilot:
 
     # ---- origin ----------------------------------------------------------------
     def set_origin(self, origin_ned_m: np.ndarray, now_s: float, requested: bool = False) -> bool:
-        """The EKF origin: set at the first fix; a later request moves it (PX4) or not (ArduPilot)."""
-        if requested and self.has_fix and not self.px4:
-            return False  # ArduPilot ignores SET_GPS_GLOBAL_ORIGIN once it has an origin
+        """The EKF origin: set at the first fix; a later request moves it if the autopilot does."""
+        if requested and self.has_fix and not self.behaviour.origin_movable:
+            return False
         self.origin_ned_m = np.asarray(origin_ned_m, float).copy()
-        self._event(SEV_INFO, "EKF origin set" if not requested else "EKF origin moved (local position reset)")
+        self.event(SEV_INFO, "EKF origin set" if not requested else "EKF origin moved (local position reset)")
         return True
 
     # ---- offboard setpoints -----------------------------------------------------
     def on_offboard_setpoint(self, sp: TrajectorySetpoint | AttitudeSetpoint, now_s: float) -> bool:
         """A setpoint in the vehicle's local frame; False if this mode ignores it."""
-        if not self.px4 and self.mode != Mode.OFFBOARD:
+        if self.behaviour.setpoints_only_in_offboard and self.mode != Mode.OFFBOARD:
             self.setpoints_ignored += 1
             return False
         if isinstance(sp, TrajectorySetpoint) and np.isfinite(sp.pos_ned_m).any():
@@ -277,7 +310,7 @@ class Autopilot:
             sp = TrajectorySetpoint(sp.pos_ned_m + self.origin_ned_m, sp.vel_ned_mps, sp.acc_ned_mps2, sp.yaw_rad,
                                     sp.yaw_rate_radps)
         self._offb = sp
-        self._offb_last_t = now_s
+        self._offb_last_t = self._now_s = now_s
         if self._offb_timed_out:
             self._offb_timed_out = False
         if self.mode == Mode.OFFBOARD:
@@ -302,24 +335,26 @@ class Autopilot:
         self.release_requested = False
         self.landed = False
         self._ground_since_t = None
+        self.loop_reset = True
         if self.knobs.throw_enabled:
             if not self.armed:  # SITL convenience: the carrier arms a vehicle nobody armed
-                self._event(SEV_INFO, "Armed by the carrier at release")
+                self.event(SEV_INFO, "Armed by the carrier at release")
             self.armed = True
             self._armed_t = now_s
             self._airborne_since_arm = True
             self.throwing = True
-            self.mode = Mode.TAKEOFF if self.px4 else Mode.THROW
+            self._uprighting = float(self.rot[2, 2]) <= THROW_UPRIGHT_COS
+            self.mode = self.behaviour.release_mode
             self.changed = True
-            self._event(SEV_INFO, "Released from carrier: throw launch, stabilising")
+            self.event(SEV_INFO, "Released from carrier: throw launch, stabilising")
         else:
-            self._event(SEV_WARNING, "Released from carrier disarmed (COM_THROW_EN=0)")
+            self.event(SEV_WARNING, "Released from carrier disarmed (COM_THROW_EN=0)")
         self._publish()
 
     def tick(self, now_s: float) -> None:
         """Periodic logic: landing detection, take-off ramp, failsafes, auto-disarm, throw."""
         dt = max(0.0, now_s - self._last_tick_t)
-        self._last_tick_t = now_s
+        self._last_tick_t = self._now_s = now_s
         if self.docked:
             return
         self._detect_landing(now_s)
@@ -338,48 +373,113 @@ class Autopilot:
         self._offboard_watchdog(now_s)
         if self.mode == Mode.TAKEOFF and self.armed and not self.throwing:
             self._takeoff_progress(now_s, dt)
-        if not self.px4 and self.mode == Mode.OFFBOARD and isinstance(self._offb, AttitudeSetpoint) \
-                and not self._offb_timed_out:
-            self._publish()  # ArduPilot's thrust follows the tilt (angle boost) or a climb rate
+        if self.behaviour.attitude_thrust_follows_tilt and self.mode == Mode.OFFBOARD \
+                and isinstance(self._offb, AttitudeSetpoint) and not self._offb_timed_out:
+            self._publish()  # the thrust follows the tilt (angle boost) or a climb rate
+        elif self._target_moves_on() or (self._stop_vel is not None and self._offb_timed_out
+                                          and self.mode == Mode.OFFBOARD and now_s <= self._stop_vel[2] + dt):
+            self._publish()  # the target moves on along the last velocity and acceleration, or brakes to rest
         self._check_geofence(now_s)
 
     # ---- internals ---------------------------------------------------------------
     def _offboard_watchdog(self, now_s: float) -> None:
         if self.mode == Mode.OFFBOARD and self._offb is not None and not self.offboard_live(now_s):
-            if self.px4:
-                self._set_mode(Mode.HOLD, now_s)
-                self._failsafe_t = now_s
-                self._event(SEV_CRITICAL, "Failsafe: offboard signal lost, Hold")
-            elif not self._offb_timed_out:
-                self._offb_timed_out = True  # GUID_TIMEOUT: stop (or level), stay in GUIDED
-                self._capture_hold()
-                self._event(SEV_WARNING, "GUIDED: setpoint timeout, stopping")
-                self._publish()
-        elif self._failsafe_t is not None and self.mode == Mode.HOLD:
-            t_land = self.knobs.loss_land_after_s
-            if t_land >= 0 and now_s - self._failsafe_t >= t_land and not self.landed:
-                self._set_mode(Mode.LAND, now_s)
-                self._failsafe_t = now_s
-                self._event(SEV_CRITICAL, "Failsafe: offboard still lost, Land")
+            if not self._offb_timed_out:
+                self.behaviour.offboard_lost(self, now_s)
 
-    def _event(self, severity: int, text: str) -> None:
+    def _target_moves_on(self) -> bool:
+        """A trajectory setpoint with a velocity or an acceleration is flown by an autopilot
+        whose target moves on along them (ArduPilot GUIDED) and has not timed out."""
+        o = self._offb
+        return (self.mode == Mode.OFFBOARD and isinstance(o, TrajectorySetpoint) and not self._offb_timed_out
+                and self.knobs.loss.carry_on == CarryOn.VELOCITY_ACCELERATION
+                and bool(np.isfinite(o.vel_ned_mps).any() or np.isfinite(o.acc_ned_mps2).any()))
+
+    def _braking(self) -> tuple[np.ndarray, np.ndarray]:
+        """(velocity, acceleration) of a zeroed velocity target now: brought from its value at
+        the timeout to zero at the loss behaviour's braking limits (horizontal, vertical)."""
+        assert self._stop_vel is not None  # (only called while one is braking)
+        v0, t0, _ = self._stop_vel
+        lb = self.knobs.loss
+        return braked_velocity(v0, max(0.0, self._now_s - t0), lb.brake_hor_mps2, lb.brake_ver_mps2)
+
+    def _moved_on(self, o: TrajectorySetpoint, tau_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """(position, velocity) of a target that moved on for tau_s along its velocity and
+        acceleration (NaN axes stay NaN)."""
+        acc = np.where(np.isfinite(o.acc_ned_mps2), o.acc_ned_mps2, 0.0)
+        vel0 = np.where(np.isfinite(o.vel_ned_mps), o.vel_ned_mps, 0.0)
+        return o.pos_ned_m + vel0 * tau_s + 0.5 * acc * tau_s * tau_s, o.vel_ned_mps + acc * tau_s
+
+    # ---- primitives the autopilot behaviours act through ---------------------------
+    def event(self, severity: int, text: str) -> None:
+        """A STATUSTEXT to the vehicle's ground stations (sent by the server)."""
         self.events.append((severity, text))
+
+    def set_mode(self, mode: Mode, now_s: float) -> None:
+        """Switch mode now (announced; the hold point is captured where the vehicle will stop)."""
+        self._set_mode(mode, now_s)
+
+    def failsafe_hold(self, now_s: float, text: str) -> None:
+        """Offboard loss: Hold for ever, in failsafe (CRITICAL state) until the user changes mode."""
+        self.failsafe_mode(Mode.HOLD, now_s, text)
+
+    def failsafe_mode(self, mode: Mode, now_s: float, text: str, descend_drifting: bool = False) -> None:
+        """Offboard loss: switch to mode, in failsafe (CRITICAL state); descend_drifting: it
+        descends at the land speed with no horizontal control (PX4 with no RC for its
+        Position/Altitude/Manual fallback), until it lands."""
+        self._set_mode(mode, now_s)
+        self._failsafe_t = now_s
+        self._descend_drift = descend_drifting
+        self.event(SEV_CRITICAL, text)
+        self._publish()
+
+    def failsafe_disarm(self, now_s: float, text: str) -> None:
+        """Offboard loss: motors off in the air (PX4 COM_OBL_RC_ACT 6 Terminate, 7 Disarm)."""
+        self._failsafe_t = now_s
+        self.event(SEV_CRITICAL, text)
+        self._disarm(now_s, "Disarmed by failsafe")
+
+    def stop_offboard_in_place(self, text: str) -> None:
+        """Offboard loss, staying in the offboard mode: a position target stops where it had
+        moved on to (ArduPilot projects it along the last velocity and acceleration until the
+        timeout), a velocity target becomes zero velocity (no position held), anything else
+        stops where the vehicle comes to rest, until setpoints come again."""
+        o = self._offb
+        self._offb_timed_out = True
+        self._capture_hold()
+        self._stop_pos, self._stop_vel = None, None
+        if isinstance(o, TrajectorySetpoint) and np.isfinite(o.pos_ned_m).all():
+            if self.knobs.loss.carry_on == CarryOn.VELOCITY_ACCELERATION:
+                self._stop_pos = self._moved_on(o, self.knobs.offboard_timeout_s)[0]
+            else:
+                self._stop_pos = o.pos_ned_m.copy()
+        elif isinstance(o, TrajectorySetpoint) and np.isfinite(o.vel_ned_mps).all():
+            v0, lb = self._moved_on(o, self.knobs.offboard_timeout_s)[1], self.knobs.loss
+            t_brake = max(float(np.linalg.norm(v0[:2])) / lb.brake_hor_mps2, abs(float(v0[2])) / lb.brake_ver_mps2)
+            self._stop_vel = (v0, self._now_s, self._now_s + t_brake)
+        self.event(SEV_WARNING, text)
+        self._publish()
+
+    def clear_offboard_setpoint(self) -> None:
+        """Forget the last offboard setpoint (only setpoints sent from now on count)."""
+        self._offb = None
 
     def _arm(self, now_s: float) -> None:
         self.armed = True
         self.changed = True
+        self.loop_reset = True
         self._armed_t = now_s
         self._airborne_since_arm = not self.landed
         self._capture_hold()
         self._tko_sp_z = self.pos[2]
-        self._event(SEV_INFO, "Armed by external command")
+        self.event(SEV_INFO, "Armed by external command")
         self._publish()
 
     def _disarm(self, now_s: float, why: str) -> None:
         self.armed = False
         self.throwing = False
         self.changed = True
-        self._event(SEV_INFO, why)
+        self.event(SEV_INFO, why)
         self._publish()
 
     def _set_mode(self, mode: Mode, now_s: float) -> None:
@@ -387,11 +487,12 @@ class Autopilot:
         self.changed = True
         self._failsafe_t = None
         self._offb_timed_out = False
+        self._descend_drift = False
         if mode not in (Mode.TAKEOFF, Mode.THROW):
             self.throwing = False
         self._capture_hold()
         self._tko_sp_z = self.pos[2]
-        self._event(SEV_INFO, f"Mode: {self.dialect.mode_name(self.custom_mode)}")
+        self.event(SEV_INFO, f"Mode: {self.dialect.mode_name(self.custom_mode)}")
         self._publish()
 
     def _capture_hold(self) -> None:
@@ -405,15 +506,13 @@ class Autopilot:
         self._hold_yaw = self.yaw
 
     def _detect_landing(self, now_s: float) -> None:
-        on_ground = self.pos[2] >= self.ground_z_m - ON_GROUND_TOL_M
-        slow = float(np.linalg.norm(self.vel)) < LAND_SPEED_MAX_MPS
-        if on_ground and slow:
+        if on_ground_and_slow(self.pos[2], float(np.linalg.norm(self.vel)), self.ground_z_m):
             if self._ground_since_t is None:
                 self._ground_since_t = now_s
             if not self.landed and now_s - self._ground_since_t >= LAND_DETECT_S:
                 self.landed = True
                 self._landed_t = now_s
-                self._event(SEV_INFO, "Landing detected")
+                self.event(SEV_INFO, "Landing detected")
                 if self.mode in (Mode.HOLD, Mode.POSITION, Mode.LAND, Mode.TAKEOFF, Mode.OFFBOARD):
                     self._capture_hold()
                     self._publish()
@@ -423,7 +522,7 @@ class Autopilot:
                 self.landed = False
                 if self.armed and not self._airborne_since_arm:
                     self._airborne_since_arm = True
-                    self._event(SEV_INFO, "Takeoff detected")
+                    self.event(SEV_INFO, "Takeoff detected")
 
     def _takeoff_progress(self, now_s: float, dt: float) -> None:
         speed = self.knobs.takeoff_speed_mps
@@ -431,28 +530,24 @@ class Autopilot:
         self._tko_sp_z = max(target, self._tko_sp_z - speed * dt) if self._tko_sp_z > target \
             else min(target, self._tko_sp_z + speed * dt)
         if abs(self.pos[2] - target) < 0.1 and self._tko_sp_z == target:
-            # PX4 switches to Hold; ArduCopter finishes its GUIDED take-off holding in GUIDED.
-            self._set_mode(Mode.HOLD if self.px4 else Mode.OFFBOARD, now_s)
-            self._offb = None if not self.px4 else self._offb
+            nxt = self.behaviour.after_takeoff_mode
+            self._set_mode(nxt, now_s)
+            if nxt == Mode.OFFBOARD and self.behaviour.offboard_entry_clears_setpoint:
+                self._offb = None
             self._hold_pos[2] = target
             self._publish()
             return
         self._publish()
 
     def _throw_progress(self, now_s: float) -> None:
+        if self.behaviour.throw_uprights_first and self._uprighting != (self.rot[2, 2] <= THROW_UPRIGHT_COS):
+            self._uprighting = not self._uprighting
+            self._publish()  # uprighted: the position loops take over (or it tipped over again)
         rate = float(np.linalg.norm(self.state.omega_body_radps[self.index]))
         if throw_recovered(float(self.rot[2, 2]), rate, float(np.linalg.norm(self.vel)),
                            *self.knobs.throw_thresholds()):
             self.throwing = False
-            if self.px4:
-                self._set_mode(Mode.HOLD, now_s)
-                self._event(SEV_INFO, "Throw launch: stable, Hold (ready for offboard)")
-            else:
-                self._event(SEV_INFO, "height achieved - controlling position")
-                nxt = _NEXT_MODE.get(int(self.params["THROW_NEXTMODE"]), Mode.THROW)
-                if nxt == Mode.OFFBOARD:
-                    self._offb = None
-                self._set_mode(nxt, now_s)
+            self.behaviour.throw_recovered(self, now_s)
 
     def _check_geofence(self, now_s: float) -> None:
         action, r_max, h_max = self.knobs.geofence()
@@ -460,7 +555,7 @@ class Autopilot:
         breach = (r_max > 0 and math.hypot(d[0], d[1]) > r_max) or (h_max > 0 and -d[2] > h_max)
         if breach and not self._fence_breached:
             self._fence_breached = True
-            self._event(SEV_CRITICAL, "Geofence violated")
+            self.event(SEV_CRITICAL, "Geofence violated")
             if self.armed and not self.landed:
                 if action == 2 and self.mode != Mode.HOLD:
                     self._set_mode(Mode.HOLD, now_s)
@@ -470,21 +565,6 @@ class Autopilot:
                     self._disarm(now_s, "Geofence: flight termination")
         elif not breach:
             self._fence_breached = False
-
-    def _attitude_thrust(self, o: AttitudeSetpoint) -> float:
-        """Fraction of maximum collective thrust the inner loop gets for an attitude setpoint."""
-        if self.px4:
-            return o.thrust_norm
-        cos_tilt = float(self.rot[2, 2])
-        if self.knobs.thrust_is_thrust:
-            return self.dialect.collective_from_thrust_field(o.thrust_norm, cos_tilt)
-        # ArduPilot without GUID_OPTIONS bit 3: the field is a climb rate, 0.5 = hold height.
-        t = o.thrust_norm
-        k = self.knobs
-        climb = (t - 0.5) * 2.0 * (k.takeoff_speed_mps if t >= 0.5 else k.descent_speed_mps)
-        kv = self.params["SD_GEO_KV"]
-        a_up = kv * (climb + float(self.vel[2]))  # vel[2] is down
-        return min(1.0, max(0.0, k.hover_thrust * (1.0 + a_up / GRAVITY_MPS2) / max(cos_tilt, ANGLE_BOOST_COS_MIN)))
 
     def _publish(self) -> None:
         """Rebuild this vehicle's inner-loop setpoint from mode and arming state."""
@@ -497,6 +577,10 @@ class Autopilot:
             sp.att_q_wxyz[0] = rot_to_quat_wxyz(self.rot[None])[0]
             sp.thrust_norm[0] = 0.0
             sp.body_rate_radps[0] = 0.0
+        elif self.throwing and self.behaviour.throw_uprights_first and self._uprighting:
+            sp.att_q_wxyz[0] = euler_zyx_to_quat_wxyz(0.0, 0.0, self._hold_yaw)  # level, on attitude alone
+            sp.thrust_norm[0] = THROW_UPRIGHT_THRUST
+            sp.body_rate_radps[0] = 0.0
         elif self.throwing:
             sp.vel_ned_mps[0] = 0.0
             sp.yaw_rad[0] = self._hold_yaw
@@ -505,23 +589,31 @@ class Autopilot:
             sp.pos_ned_m[0] = o.pos_ned_m
             sp.vel_ned_mps[0] = o.vel_ned_mps
             sp.acc_ned_mps2[0] = o.acc_ned_mps2
+            if self._target_moves_on():
+                sp.pos_ned_m[0], sp.vel_ned_mps[0] = self._moved_on(o, max(0.0, self._now_s - self._offb_last_t))
             sp.yaw_rad[0] = o.yaw_rad
             sp.yaw_rate_radps[0] = o.yaw_rate_radps
             if not (math.isfinite(o.yaw_rad) or math.isfinite(o.yaw_rate_radps)):
                 sp.yaw_rad[0] = self._hold_yaw
-        elif offboard:
-            o = self._offb
-            sp.thrust_norm[0] = self._attitude_thrust(o)
-            sp.body_rate_radps[0] = o.body_rate_radps
-            if o.att_q_wxyz is None:
+        elif offboard and isinstance(self._offb, AttitudeSetpoint):
+            att = self._offb
+            sp.thrust_norm[0] = self.behaviour.attitude_thrust(self, att)
+            sp.body_rate_radps[0] = att.body_rate_radps
+            if att.att_q_wxyz is None:
                 self.rates_only = True
                 self.rate_q_reset = True
                 sp.att_q_wxyz[0] = rot_to_quat_wxyz(self.rot[None])[0]
             else:
-                sp.att_q_wxyz[0] = o.att_q_wxyz
-        elif self.mode == Mode.OFFBOARD and self._offb_timed_out and isinstance(self._offb, TrajectorySetpoint) \
-                and np.isfinite(self._offb.pos_ned_m).all():
-            sp.pos_ned_m[0] = self._offb.pos_ned_m  # GUID_TIMEOUT: the last position target, at rest
+                sp.att_q_wxyz[0] = att.att_q_wxyz
+        elif self.mode == Mode.OFFBOARD and self._offb_timed_out and self._stop_pos is not None:
+            sp.pos_ned_m[0] = self._stop_pos  # GUID_TIMEOUT: the target where it stopped, at rest
+            sp.yaw_rad[0] = self._hold_yaw
+        elif self.mode == Mode.OFFBOARD and self._offb_timed_out and self._stop_vel is not None:
+            sp.vel_ned_mps[0], sp.acc_ned_mps2[0] = self._braking()  # GUID_TIMEOUT: a velocity target zeroed
+            sp.yaw_rad[0] = self._hold_yaw
+        elif self._descend_drift:
+            sp.acc_ned_mps2[0, :2] = 0.0  # no horizontal control: level, drifting
+            sp.vel_ned_mps[0, 2] = self.knobs.loss.descent_speed_mps
             sp.yaw_rad[0] = self._hold_yaw
         elif self.mode == Mode.LAND:
             sp.pos_ned_m[0, :2] = self._hold_pos[:2]

@@ -3,20 +3,15 @@ from __future__ import annotations
 
 import asyncio
 import threading
-from typing import TYPE_CHECKING
 
 from sim_bridge.sitl.config import SitlConfig
-
-if TYPE_CHECKING:  # server.py re-exports this class, so it is imported lazily below
-    from sim_bridge.sitl.server import SitlServer
+from sim_bridge.sitl.server import SitlServer
 
 
 class BackgroundSitl:
     """Run a SitlServer on its own thread and event loop (tests, embedding)."""
 
     def __init__(self, cfg: SitlConfig, **kwargs):
-        from sim_bridge.sitl.server import SitlServer  # (imports this module)
-
         self.server = SitlServer(cfg, **kwargs)
         self._ready = threading.Event()
         self._error: BaseException | None = None
@@ -29,7 +24,7 @@ class BackgroundSitl:
             self._error = exc
             self._ready.set()
 
-    def start(self, timeout_s: float = 30.0) -> "SitlServer":
+    def start(self, timeout_s: float = 30.0) -> SitlServer:
         self._thread.start()
         if not self._ready.wait(timeout_s) or self._error is not None:
             raise RuntimeError(f"SITL did not start: {self._error!r}")
@@ -41,7 +36,7 @@ class BackgroundSitl:
         if self._thread.is_alive():
             raise RuntimeError("SITL thread did not stop")
 
-    def __enter__(self) -> "SitlServer":
+    def __enter__(self) -> SitlServer:
         return self.start()
 
     def __exit__(self, *exc) -> None:

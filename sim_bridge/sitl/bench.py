@@ -11,7 +11,7 @@ import asyncio
 import dataclasses
 import time
 
-from sim_bridge.sitl.config import SitlConfig
+from sim_bridge.sitl.config import SitlConfig, sitl_config
 from sim_bridge.sitl.server import SitlServer
 from sim_bridge.sitl.testing import local_endpoints
 
@@ -41,7 +41,7 @@ async def _measure(server: SitlServer, warmup_s: float, duration_s: float) -> di
 
 
 def bench_one(n: int, duration_s: float = 5.0, warmup_s: float = 4.0) -> dict:
-    cfg = SitlConfig(vehicles=n, endpoints=local_endpoints(n))
+    cfg = sitl_config(n, endpoints=local_endpoints(n))
     server = SitlServer(cfg)
     for ap in server.autopilots:  # arm and take off everyone before the clock starts
         ap.command_arm(1.0, 0.0, 0.0)

@@ -6,18 +6,15 @@ server implements it), so it can be tested without sockets.
 from __future__ import annotations
 
 import math
-import os
-from typing import Protocol
+import time
+from typing import Callable, Protocol
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
-
-from companion.link.limits import INVALID_SETPOINTS, check_attitude, check_trajectory  # noqa: E402
-from companion.link.params import param_name  # noqa: E402
-from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target  # noqa: E402
-from companion.link.wire import signature_of  # noqa: E402
-from sim_bridge.faults import RotorFaults  # noqa: E402
-from sim_bridge.sitl.autopilot import (  # noqa: E402
+from companion.link.enums import FailureType, FailureUnit, MavCmd, MavFtpErr, MavFtpOpcode, MavMissionType, MsgId
+from companion.link.limits import INVALID_SETPOINTS, check_attitude, check_trajectory
+from companion.link.params import param_name
+from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target
+from companion.link.wire import signature_of
+from sim_bridge.sitl.autopilot import (
     ACCEPTED,
     DENIED,
     SEV_CRITICAL,
@@ -25,26 +22,28 @@ from sim_bridge.sitl.autopilot import (  # noqa: E402
     UNSUPPORTED,
     Autopilot,
 )
-from sim_bridge.sitl.params_table import ParamTable  # noqa: E402
-from sim_bridge.sitl.telemetry import (  # noqa: E402
+from sim_bridge.sitl.params_table import ParamTable
+from sim_bridge.sitl.telemetry import (
     HEARTBEAT,
     REQUESTABLE,
     STREAMS,
+    Outgoing,
     TelemetryBuilder,
 )
+from sim_bridge.world.faults import RotorFaults
 
-CMD_NAV_LAND = 21
-CMD_NAV_TAKEOFF = 22
-CMD_DO_SET_MODE = 176
-CMD_ARM_DISARM = 400
-CMD_INJECT_FAILURE = 420
-FAILURE_UNIT_SYSTEM_MOTOR = 101
-FAILURE_TYPE_OK, FAILURE_TYPE_OFF = 0, 1
-CMD_GET_MESSAGE_INTERVAL = 510
-CMD_SET_MESSAGE_INTERVAL = 511
-CMD_REQUEST_MESSAGE = 512
-CMD_REQUEST_AUTOPILOT_CAPABILITIES = 520
-CMD_SD_RELEASE = 31010  # MAV_CMD_USER_1: release this vehicle from the carrier now
+CMD_NAV_LAND = MavCmd.MAV_CMD_NAV_LAND
+CMD_NAV_TAKEOFF = MavCmd.MAV_CMD_NAV_TAKEOFF
+CMD_DO_SET_MODE = MavCmd.MAV_CMD_DO_SET_MODE
+CMD_ARM_DISARM = MavCmd.MAV_CMD_COMPONENT_ARM_DISARM
+CMD_INJECT_FAILURE = MavCmd.MAV_CMD_INJECT_FAILURE
+CMD_GET_MESSAGE_INTERVAL = MavCmd.MAV_CMD_GET_MESSAGE_INTERVAL
+CMD_SET_MESSAGE_INTERVAL = MavCmd.MAV_CMD_SET_MESSAGE_INTERVAL
+CMD_REQUEST_MESSAGE = MavCmd.MAV_CMD_REQUEST_MESSAGE
+CMD_REQUEST_AUTOPILOT_CAPABILITIES = MavCmd.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES
+CMD_SD_RELEASE = MavCmd.MAV_CMD_USER_1
+"""swarmdrop's own: release this vehicle from the carrier now."""
+FTP_NAK = MavFtpOpcode.MAV_FTP_OPCODE_NAK
 
 COMMAND_INT_OK = frozenset({CMD_NAV_LAND, CMD_NAV_TAKEOFF, CMD_DO_SET_MODE, CMD_ARM_DISARM, CMD_INJECT_FAILURE,
                             CMD_SET_MESSAGE_INTERVAL, CMD_REQUEST_MESSAGE, CMD_GET_MESSAGE_INTERVAL,
@@ -56,18 +55,24 @@ PARAM_LIST_RATE_HZ = 1000.0
 table takes tens of ms, and a flood of PARAM_REQUEST_LIST cannot queue more than one list."""
 PARAM_LISTS_MAX = 64
 """Listings in progress at once (all vehicles and clients); a new one beyond this replaces the oldest."""
+SETUP_SIGNING_REPORT_S = 1.0
+"""At most one "SETUP_SIGNING refused" STATUSTEXT per vehicle per this many wall seconds
+(each refusal is counted; a flood of them must not become a flood of STATUSTEXTs)."""
 
 
 class SitlContext(Protocol):
+    """What the router reads of the SITL and asks it to do (SitlServer implements it)."""
+
     n: int
-    sim_s: float
     home_alt_amsl_m: float
     rotor_faults: RotorFaults
     autopilots: list[Autopilot]
     params: list[ParamTable]
     telemetry: TelemetryBuilder
 
-    def send(self, k: int, msg: mavlink.MAVLink_message, endpoint, addr) -> None: ...
+    @property
+    def sim_s(self) -> float: ...
+    def send(self, k: int, msg: Outgoing, endpoint, addr) -> None: ...
     def set_message_interval(self, k: int, msgid: int, interval_s: float | None) -> None: ...
     def message_interval_s(self, k: int, msgid: int) -> float: ...
     def on_setpoint(self, k: int) -> None: ...
@@ -77,8 +82,14 @@ class SitlContext(Protocol):
 
 
 class MessageRouter:
-    def __init__(self, ctx: SitlContext):
+    """Args:
+        ctx: the SITL (SitlContext).
+        clock: monotonic wall seconds (paces the SETUP_SIGNING reports).
+    """
+
+    def __init__(self, ctx: SitlContext, clock: Callable[[], float] = time.monotonic):
         self.ctx = ctx
+        self.clock = clock
         self._last_reject: dict[int, str] = {}
         self._lists: dict[tuple[int, int, object], list] = {}
         """(vehicle, endpoint id, client address) -> [endpoint, next index, budget]: paced listings."""
@@ -101,7 +112,10 @@ class MessageRouter:
             "SETUP_SIGNING": self._setup_signing,
         }
         self.setup_signing_refused = 0
-        """SETUP_SIGNING messages ignored because they did not arrive signed with the current key."""
+        """SETUP_SIGNING refused in this SITL, on any endpoint, in any signing mode (per
+        link: SigningCounters.setup_signing_refused)."""
+        self._setup_reported: dict[int, float] = {}
+        """vehicle -> wall time of its last "SETUP_SIGNING refused" report."""
 
     def targets(self, msg, vehicle: int | None) -> list[int]:
         """Vehicle indices a message is for: its own vehicle on a per-vehicle link,
@@ -119,7 +133,7 @@ class MessageRouter:
     def handle(self, endpoint, msg, addr, vehicle: int | None) -> None:
         fn = self._dispatch.get(msg.get_type())
         if msg.get_type() == "SWARMDROP_TICK":  # no target fields: a companion's own vehicle
-            if vehicle is not None:
+            if vehicle is not None and fn is not None:
                 fn(vehicle, msg, endpoint, addr)
             return
         if fn is None:
@@ -134,8 +148,9 @@ class MessageRouter:
 
     # ---- commands ------------------------------------------------------------------
     def _ack(self, k, msg, endpoint, addr, command, result) -> None:
-        self.ctx.send(k, mavlink.MAVLink_command_ack_message(
-            command, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()), endpoint, addr)
+        ack = self.ctx.telemetry.build_fields[MsgId.COMMAND_ACK](
+            command=command, result=result, target_system=msg.get_srcSystem(), target_component=msg.get_srcComponent())
+        self.ctx.send(k, (MsgId.COMMAND_ACK, ack), endpoint, addr)
 
     def _reply_message(self, k, msgid: int) -> tuple[int, object | None]:
         """(ACK result, message) for REQUEST_MESSAGE of msgid."""
@@ -175,7 +190,7 @@ class MessageRouter:
         elif command == CMD_GET_MESSAGE_INTERVAL:
             result, followup = self._get_interval(k, p[0])
         elif command in (CMD_REQUEST_MESSAGE, CMD_REQUEST_AUTOPILOT_CAPABILITIES):
-            msgid = 148 if command == CMD_REQUEST_AUTOPILOT_CAPABILITIES else p[0]
+            msgid = MsgId.AUTOPILOT_VERSION if command == CMD_REQUEST_AUTOPILOT_CAPABILITIES else p[0]
             if not math.isfinite(msgid) or int(msgid) not in REQUESTABLE:
                 result = DENIED
             else:
@@ -187,18 +202,20 @@ class MessageRouter:
             ctx.send(k, followup, endpoint, addr)
 
     def _inject_failure(self, k, ap, unit, kind, instance) -> int:
-        """PX4's failure injection, motors only: DENIED unless SYS_FAILURE_EN is 1 (as PX4),
-        UNSUPPORTED for other units and types and on ArduPilot (which has no such command).
+        """PX4's failure injection, motors only: DENIED unless the autopilot enables it (PX4:
+        SYS_FAILURE_EN 1), UNSUPPORTED for other units and types and on autopilots without
+        the command (ArduPilot).
         instance 0 stops every motor, 1..4 one of them. A stopped motor stays stopped
         (FAILURE_TYPE_OK is refused: the simulated rotor does not come back)."""
-        if not ap.px4:
+        if not ap.behaviour.supports_failure_injection:
             return UNSUPPORTED
         if not all(math.isfinite(x) for x in (unit, kind, instance)):
             return DENIED
-        if self.ctx.params[k].get("SYS_FAILURE_EN", 0.0) != 1.0:
+        if not ap.behaviour.failure_injection_enabled(self.ctx.params[k]):
             return DENIED
         motor = int(instance)
-        if int(unit) != FAILURE_UNIT_SYSTEM_MOTOR or int(kind) != FAILURE_TYPE_OFF or not 0 <= motor <= 4:
+        if int(unit) != FailureUnit.FAILURE_UNIT_SYSTEM_MOTOR or int(kind) != FailureType.FAILURE_TYPE_OFF \
+                or not 0 <= motor <= 4:
             return UNSUPPORTED
         for r in (range(4) if motor == 0 else (motor - 1,)):
             self.ctx.rotor_faults.fail_now(k, r, self.ctx.sim_s)
@@ -227,14 +244,15 @@ class MessageRouter:
             return DENIED, None
         iv = self.ctx.message_interval_s(k, int(msgid_f))
         us = -1 if not math.isfinite(iv) else int(round(iv * 1e6))
-        return ACCEPTED, mavlink.MAVLink_message_interval_message(int(msgid_f), us)
+        return ACCEPTED, (MsgId.MESSAGE_INTERVAL, self.ctx.telemetry.build_fields[MsgId.MESSAGE_INTERVAL](
+            message_id=int(msgid_f), interval_us=us))
 
     # ---- offboard ------------------------------------------------------------------
     def _position_target(self, k, msg, endpoint, addr) -> None:
         ap = self.ctx.autopilots[k]
         sp = decode_position_target(
             msg.type_mask, msg.coordinate_frame, (msg.x, msg.y, msg.z), (msg.vx, msg.vy, msg.vz),
-            (msg.afx, msg.afy, msg.afz), msg.yaw, msg.yaw_rate, ap.rot, guided_rules=not ap.px4)
+            (msg.afx, msg.afy, msg.afz), msg.yaw, msg.yaw_rate, ap.rot, ap.dialect.setpoint_rules)
         if not isinstance(sp, Rejected):
             sp = check_trajectory(sp, ap.knobs.limits())
         self._offboard(k, ap, sp)
@@ -243,7 +261,7 @@ class MessageRouter:
         ap = self.ctx.autopilots[k]
         sp = decode_attitude_target(msg.type_mask, tuple(msg.q),
                                     (msg.body_roll_rate, msg.body_pitch_rate, msg.body_yaw_rate), msg.thrust,
-                                    guided_rules=not ap.px4)
+                                    ap.dialect.setpoint_rules)
         if not isinstance(sp, Rejected):
             sp = check_attitude(sp, ap.knobs.limits(), ap.knobs.thrust_is_thrust)
         self._offboard(k, ap, sp)
@@ -262,16 +280,28 @@ class MessageRouter:
 
     def _setup_signing(self, k, msg, endpoint, addr) -> None:
         """A new key, accepted only over an already trusted link: signing is on for this
-        endpoint and the message itself was signed with the current key (checked on receipt).
-        Without that, anyone on the link could install their own key."""
+        endpoint and the message itself was signed with the current key and is new (the
+        signing layer drops, counts and reports the rest before decoding: see
+        refuse_setup_signing). Without that, anyone on the link could install their own key."""
         sg = getattr(endpoint, "signing", None)
         if sg is None or signature_of(msg) is None:
-            self.setup_signing_refused += 1
-            if self._last_reject.get(k) != "SETUP_SIGNING refused":
-                self._last_reject[k] = "SETUP_SIGNING refused"
-                self.ctx.autopilots[k].events.append((SEV_CRITICAL, "SETUP_SIGNING refused: link not trusted"))
+            if sg is not None:
+                sg.counters.setup_signing_refused += 1
+            self.refuse_setup_signing(k, "signing off" if sg is None else "unsigned")
             return
         sg.set_key(bytes(msg.secret_key))
+
+    def refuse_setup_signing(self, k: int, reason: str) -> None:
+        """Count a refused SETUP_SIGNING for vehicle k and say so by STATUSTEXT (CRITICAL, to
+        the vehicle's ground stations, never to the sender), at most once per vehicle per
+        SETUP_SIGNING_REPORT_S with the number refused so far."""
+        self.setup_signing_refused += 1
+        now = self.clock()
+        if now - self._setup_reported.get(k, -math.inf) < SETUP_SIGNING_REPORT_S:
+            return
+        self._setup_reported[k] = now
+        self.ctx.autopilots[k].events.append(
+            (SEV_CRITICAL, f"SETUP_SIGNING refused ({reason}), {self.setup_signing_refused} so far"))
 
     def _companion_tick(self, k, msg, endpoint, addr) -> None:
         self.ctx.on_companion_tick(k, msg.time_usec)
@@ -282,10 +312,11 @@ class MessageRouter:
         self.ctx.set_origin_geodetic(k, msg.latitude, msg.longitude, msg.altitude)
 
     # ---- parameters ------------------------------------------------------------------
-    def _param_value(self, k, index) -> mavlink.MAVLink_message:
+    def _param_value(self, k, index) -> Outgoing:
         table = self.ctx.params[k]
         name, wire, ptype = table.wire(index)
-        return mavlink.MAVLink_param_value_message(name.encode(), wire, ptype, len(table), index)
+        return MsgId.PARAM_VALUE, self.ctx.telemetry.build_fields[MsgId.PARAM_VALUE](
+            param_id=name.encode(), param_value=wire, param_type=ptype, param_count=len(table), param_index=index)
 
     def _param_list(self, k, msg, endpoint, addr) -> None:
         """Start (or restart) a paced listing for this client: `pump_params` sends it.
@@ -336,34 +367,38 @@ class MessageRouter:
         if msg.tc1 != 0:
             return
         # tc1 is the autopilot's boot clock in ns: simulation time (PX4 SITL in lockstep too).
-        reply = mavlink.MAVLink_timesync_message(int(round(self.ctx.sim_s * 1e9)), msg.ts1)
-        if hasattr(reply, "target_system"):
-            reply.target_system, reply.target_component = msg.get_srcSystem(), msg.get_srcComponent()
-        self.ctx.send(k, reply, endpoint, addr)
+        b = self.ctx.telemetry.build_fields[MsgId.TIMESYNC]
+        fields = {"tc1": int(round(self.ctx.sim_s * 1e9)), "ts1": msg.ts1}
+        if "target_system" in getattr(b, "fields", ()):  # (newer common.xml addresses the reply)
+            fields |= {"target_system": msg.get_srcSystem(), "target_component": msg.get_srcComponent()}
+        self.ctx.send(k, (MsgId.TIMESYNC, b(**fields)), endpoint, addr)
 
     def _ping(self, k, msg, endpoint, addr) -> None:
         if msg.target_system == 0 and msg.target_component == 0:
-            self.ctx.send(k, mavlink.MAVLink_ping_message(
-                msg.time_usec, msg.seq, msg.get_srcSystem(), msg.get_srcComponent()), endpoint, addr)
+            self.ctx.send(k, (MsgId.PING, self.ctx.telemetry.build_fields[MsgId.PING](
+                time_usec=msg.time_usec, seq=msg.seq, target_system=msg.get_srcSystem(),
+                target_component=msg.get_srcComponent())), endpoint, addr)
 
     def _mission_list(self, k, msg, endpoint, addr) -> None:
         """No missions in the SITL: an empty list keeps ground stations happy."""
-        self.ctx.send(k, mavlink.MAVLink_mission_count_message(
-            msg.get_srcSystem(), msg.get_srcComponent(), 0, getattr(msg, "mission_type", 0)), endpoint, addr)
+        self.ctx.send(k, (MsgId.MISSION_COUNT, self.ctx.telemetry.build_fields[MsgId.MISSION_COUNT](
+            target_system=msg.get_srcSystem(), target_component=msg.get_srcComponent(), count=0,
+            mission_type=getattr(msg, "mission_type", MavMissionType.MAV_MISSION_TYPE_MISSION))), endpoint, addr)
 
 
     def _ftp(self, k, msg, endpoint, addr) -> None:
         """No MAVLink FTP: NAK every request (FileNotFound) so clients fall back at once
         (MAVProxy then fetches parameters with PARAM_REQUEST_LIST)."""
         req = bytes(msg.payload)
-        if len(req) < 12 or req[3] in (128, 129):  # not a request, or an ACK/NAK
+        if len(req) < 12 or req[3] in (MavFtpOpcode.MAV_FTP_OPCODE_ACK, FTP_NAK):  # not a request, or an ACK/NAK
             return
         seq = (int.from_bytes(req[0:2], "little") + 1) & 0xFFFF
         reply = bytearray(251)
         reply[0:2] = seq.to_bytes(2, "little")
-        reply[2], reply[3], reply[4], reply[5] = req[2], 129, 1, req[3]  # session, NAK, size 1, req_opcode
-        reply[12] = 10  # MAV_FTP_ERR_FILENOTFOUND
-        self.ctx.send(k, mavlink.MAVLink_file_transfer_protocol_message(
-            0, msg.get_srcSystem(), msg.get_srcComponent(), list(reply)), endpoint, addr)
+        reply[2], reply[3], reply[4], reply[5] = req[2], FTP_NAK, 1, req[3]  # session, NAK, size 1, req_opcode
+        reply[12] = MavFtpErr.MAV_FTP_ERR_FILENOTFOUND
+        self.ctx.send(k, (MsgId.FILE_TRANSFER_PROTOCOL, self.ctx.telemetry.build_fields[MsgId.FILE_TRANSFER_PROTOCOL](
+            target_system=msg.get_srcSystem(), target_component=msg.get_srcComponent(), payload=tuple(reply))),
+            endpoint, addr)
 
 

@@ -18,6 +18,10 @@ class SitlStatus:
         phases: vehicles per agent phase (launch, stabilise, assemble, transit, hover, land, failed),
             as the agents last reported them over the radio (empty without a radio).
         link_bytes_per_s_per_vehicle: radio bytes received per simulated second and vehicle.
+        t_go_s: the earliest transit start the agents have published, mission time, s
+            (None before any has; a progress bar's ETA reads it).
+        id_conflicts: swarm states the radio refused because another address already
+            sends that vehicle id (two agents with one --vehicle-id).
     """
 
     sim_s: float = 0.0
@@ -28,6 +32,8 @@ class SitlStatus:
     complete: bool = False
     phases: tuple[int, ...] = field(default_factory=tuple)
     link_bytes_per_s_per_vehicle: float | None = None
+    t_go_s: float | None = None
+    id_conflicts: int = 0
 
     def to_line(self) -> str:
         return "STATUS " + json.dumps(dataclasses.asdict(self))

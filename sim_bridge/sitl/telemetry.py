@@ -1,62 +1,85 @@
 """Telemetry: MAVLink messages built as data, and a batched per-message interval scheduler.
 
-Builders return pymavlink message objects (not packed); the endpoint sender task
-packs them. The scheduler keeps one (N, M) table of intervals and due times so a
+Builders return a message as data, `(MsgId, field values)`, through the lean codec's
+named-field builders (companion.link.builder, resolved once here); the endpoint sender
+task packs them. The scheduler keeps one (N, M) table of intervals and due times so a
 tick costs one numpy comparison however many vehicles there are.
 """
 from __future__ import annotations
 
 import math
-import os
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-os.environ.setdefault("MAVLINK20", "1")
-from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
+from companion.frames import ned_to_geodetic, rot_to_euler_zyx, rot_to_quat_wxyz
+from companion.link.enums import (
+    GpsFixType,
+    MavBatteryFunction,
+    MavBatteryType,
+    MavProtocolCapability,
+    MavSysStatusSensor,
+    MavType,
+    MsgId,
+)
+from companion.link.wire import Codec
+from companion.mission import GeodeticOrigin
+from companion.state import FleetState
+from sim_bridge.sitl.autopilot import Autopilot
+from sim_bridge.sitl.config import StreamRates
+from sim_bridge.world.estimator import Estimator
 
-from companion.frames import ned_to_geodetic, rot_to_euler_zyx, rot_to_quat_wxyz  # noqa: E402
-from companion.state import FleetState  # noqa: E402
-from sim_bridge.estimator import Estimator  # noqa: E402
-from sim_bridge.sitl.autopilot import Autopilot  # noqa: E402
-from sim_bridge.sitl.config import HomeConfig, StreamRates  # noqa: E402
+Outgoing = tuple[int, tuple]
+"""A message as data: (message id, its field values in declaration order)."""
 
-MAV_TYPE_QUADROTOR = 2
-
-HEARTBEAT = 0
-SYS_STATUS = 1
-SYSTEM_TIME = 2
-GPS_RAW_INT = 24
-ATTITUDE = 30
-ATTITUDE_QUATERNION = 31
-LOCAL_POSITION_NED = 32
-GLOBAL_POSITION_INT = 33
-GPS_GLOBAL_ORIGIN = 49
-BATTERY_STATUS = 147
-AUTOPILOT_VERSION = 148
-HOME_POSITION = 242
-EXTENDED_SYS_STATE = 245
+HEARTBEAT = MsgId.HEARTBEAT
+SYS_STATUS = MsgId.SYS_STATUS
+SYSTEM_TIME = MsgId.SYSTEM_TIME
+GPS_RAW_INT = MsgId.GPS_RAW_INT
+ATTITUDE = MsgId.ATTITUDE
+ATTITUDE_QUATERNION = MsgId.ATTITUDE_QUATERNION
+LOCAL_POSITION_NED = MsgId.LOCAL_POSITION_NED
+GLOBAL_POSITION_INT = MsgId.GLOBAL_POSITION_INT
+GPS_GLOBAL_ORIGIN = MsgId.GPS_GLOBAL_ORIGIN
+BATTERY_STATUS = MsgId.BATTERY_STATUS
+AUTOPILOT_VERSION = MsgId.AUTOPILOT_VERSION
+HOME_POSITION = MsgId.HOME_POSITION
+EXTENDED_SYS_STATE = MsgId.EXTENDED_SYS_STATE
 
 STREAMS = (SYS_STATUS, SYSTEM_TIME, GPS_RAW_INT, ATTITUDE, ATTITUDE_QUATERNION, LOCAL_POSITION_NED,
            GLOBAL_POSITION_INT, BATTERY_STATUS, HOME_POSITION, EXTENDED_SYS_STATE)
 """Messages streamed on simulation time (HEARTBEAT has its own wall-clock schedule)."""
 REQUESTABLE = frozenset(STREAMS) | {HEARTBEAT, AUTOPILOT_VERSION, GPS_GLOBAL_ORIGIN}
+SENT = (*STREAMS, HEARTBEAT, AUTOPILOT_VERSION, GPS_GLOBAL_ORIGIN, MsgId.STATUSTEXT, MsgId.COMMAND_ACK,
+        MsgId.MESSAGE_INTERVAL, MsgId.PARAM_VALUE, MsgId.TIMESYNC, MsgId.PING, MsgId.MISSION_COUNT,
+        MsgId.FILE_TRANSFER_PROTOCOL)
+"""Every message the SITL sends (their builders are resolved once)."""
 
-_RATE_FIELD = {SYS_STATUS: "sys_status", SYSTEM_TIME: "system_time", GPS_RAW_INT: "gps_raw_int",
+_RATE_FIELD: dict[int, str] = {SYS_STATUS: "sys_status", SYSTEM_TIME: "system_time", GPS_RAW_INT: "gps_raw_int",
                ATTITUDE: "attitude", ATTITUDE_QUATERNION: "attitude_quaternion",
                LOCAL_POSITION_NED: "local_position_ned", GLOBAL_POSITION_INT: "global_position_int",
                BATTERY_STATUS: "battery_status", HOME_POSITION: "home_position",
                EXTENDED_SYS_STATE: "extended_sys_state", HEARTBEAT: "heartbeat"}
 
-# SYS_STATUS sensor bits: gyro, accel, mag, baro, GPS, rate/attitude/yaw/alt/xy control,
-# motor outputs, AHRS, battery; PREARM_CHECK only in health when pre-arm checks pass.
-SENSORS = (0x1 | 0x2 | 0x4 | 0x8 | 0x20 | 0x400 | 0x800 | 0x1000 | 0x2000 | 0x4000 | 0x8000
-           | 0x200000 | 0x2000000)
-PREARM_CHECK = 0x10000000
-GEOFENCE = 0x100000
+S = MavSysStatusSensor
+SENSORS = (S.MAV_SYS_STATUS_SENSOR_3D_GYRO | S.MAV_SYS_STATUS_SENSOR_3D_ACCEL | S.MAV_SYS_STATUS_SENSOR_3D_MAG
+           | S.MAV_SYS_STATUS_SENSOR_ABSOLUTE_PRESSURE | S.MAV_SYS_STATUS_SENSOR_GPS
+           | S.MAV_SYS_STATUS_SENSOR_ANGULAR_RATE_CONTROL | S.MAV_SYS_STATUS_SENSOR_ATTITUDE_STABILIZATION
+           | S.MAV_SYS_STATUS_SENSOR_YAW_POSITION | S.MAV_SYS_STATUS_SENSOR_Z_ALTITUDE_CONTROL
+           | S.MAV_SYS_STATUS_SENSOR_XY_POSITION_CONTROL | S.MAV_SYS_STATUS_SENSOR_MOTOR_OUTPUTS
+           | S.MAV_SYS_STATUS_AHRS | S.MAV_SYS_STATUS_SENSOR_BATTERY)
+"""SYS_STATUS sensors present: gyro, accel, mag, baro, GPS, rate/attitude/yaw/alt/xy control,
+motor outputs, AHRS, battery; PREARM_CHECK is in health only when pre-arm checks pass."""
+PREARM_CHECK = S.MAV_SYS_STATUS_PREARM_CHECK
+GEOFENCE = S.MAV_SYS_STATUS_GEOFENCE
+GPS_SENSOR = S.MAV_SYS_STATUS_SENSOR_GPS
 BATTERY_FLIGHT_S = 1200.0
 BATTERY_CELLS = 4
+_CAP = MavProtocolCapability
+CAPABILITIES = (_CAP.MAV_PROTOCOL_CAPABILITY_COMMAND_INT | _CAP.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
+                | _CAP.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_LOCAL_NED | _CAP.MAV_PROTOCOL_CAPABILITY_MAVLINK2)
+"""AUTOPILOT_VERSION capabilities of every vehicle, plus how integer parameters travel."""
 
 
 def default_interval_s(rates: StreamRates, msgid: int) -> float:
@@ -108,13 +131,13 @@ class IntervalScheduler:
         return ks, js
 
 
-def world_to_geodetic(home: HomeConfig, ned_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def world_to_geodetic(home: GeodeticOrigin, ned_m: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """World NED (tangent frame at home) -> lat_deg, lon_deg, alt_amsl_m on the WGS-84
     ellipsoid: the same conversion the agent uses (companion.frames)."""
     return ned_to_geodetic(ned_m, home.lat_deg, home.lon_deg, home.alt_amsl_m)
 
 
-def quantised_origin(home: HomeConfig, origin_ned_m: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int]]:
+def quantised_origin(home: GeodeticOrigin, origin_ned_m: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int]]:
     """An EKF origin as GPS_GLOBAL_ORIGIN carries it (1e-7 deg, mm) and the world point
     that is exactly that origin, so LOCAL_POSITION_NED and the origin agree to the bit."""
     from companion.frames import geodetic_to_ned
@@ -148,23 +171,32 @@ class TelemetryBuilder:
     SYSTEM_TIME.time_unix_usec = epoch_unix_s + simulation time.
     """
 
-    def __init__(self, state: FleetState, autopilots: list[Autopilot], home: HomeConfig,
-                 home_ned_m: np.ndarray, epoch_unix_s: float | None = None, estimator: Estimator | None = None):
+    def __init__(self, state: FleetState, autopilots: list[Autopilot], home: GeodeticOrigin,
+                 home_ned_m: np.ndarray, codec: Codec, epoch_unix_s: float | None = None,
+                 estimator: Estimator | None = None, origin_e7: list | None = None,
+                 flight_time_s: np.ndarray | None = None):
         self.state = state
         self.estimator = estimator
         """GPS/estimator errors and latency on what is reported (None: the true state)."""
         self.aps = autopilots
         self.home = home
         self.home_ned_m = home_ned_m
-        self.flight_time_s = np.zeros(state.n)
+        self.build_fields = {m: codec.builder(m) for m in SENT}
+        """MsgId -> its named-field builder (also used by the handler's replies)."""
+        self.flight_time_s = np.zeros(state.n) if flight_time_s is None else flight_time_s
+        """Armed time of each vehicle, s (the vehicles' own array: the battery model reads it)."""
         self.epoch_unix_s = float(round(time.time())) if epoch_unix_s is None else float(epoch_unix_s)
         hl, ho, ha = world_to_geodetic(home, home_ned_m)
         self.home_lat_e7 = np.round(hl * 1e7).astype(np.int64)
         self.home_lon_e7 = np.round(ho * 1e7).astype(np.int64)
         self.home_alt_mm = np.round(ha * 1e3).astype(np.int64)
-        self.origin_e7: list[tuple[int, int, int] | None] = [None] * state.n
-        """GPS_GLOBAL_ORIGIN (lat 1e7, lon 1e7, alt mm) of each vehicle, None before its fix."""
+        self.origin_e7: list[tuple[int, int, int] | None] = [None] * state.n if origin_e7 is None else origin_e7
+        """GPS_GLOBAL_ORIGIN (lat 1e7, lon 1e7, alt mm) of each vehicle, None before its fix
+        (the vehicles' own list)."""
         self._snap: Snapshot | None = None
+        b = self.build_fields
+        self._lpn, self._att, self._attq = b[LOCAL_POSITION_NED], b[ATTITUDE], b[ATTITUDE_QUATERNION]
+        self._gpi, self._gps, self._sys = b[GLOBAL_POSITION_INT], b[GPS_RAW_INT], b[SYS_STATUS]
 
     def snapshot(self, sim_s: float) -> Snapshot:
         s = self.state
@@ -197,31 +229,34 @@ class TelemetryBuilder:
         if snap._geo is None or k not in snap._geo:
             self._snap = snap
             self.prepare_geodetic([k])
+        assert snap._geo is not None  # (prepare_geodetic made it)
         return snap._geo[k]
 
-    def heartbeat(self, k: int) -> mavlink.MAVLink_message:
+    def heartbeat(self, k: int) -> Outgoing:
         ap = self.aps[k]
-        return mavlink.MAVLink_heartbeat_message(MAV_TYPE_QUADROTOR, ap.dialect.autopilot_id, ap.base_mode,
-                                                 ap.custom_mode, ap.system_status, 3)
+        return HEARTBEAT, self.build_fields[HEARTBEAT](
+            type=MavType.MAV_TYPE_QUADROTOR, autopilot=ap.dialect.autopilot_id, base_mode=ap.base_mode,
+            custom_mode=ap.custom_mode, system_status=ap.system_status)
 
-    def statustext(self, severity: int, text: str) -> mavlink.MAVLink_message:
-        return mavlink.MAVLink_statustext_message(severity, text.encode()[:50])
+    def statustext(self, severity: int, text: str) -> Outgoing:
+        return MsgId.STATUSTEXT, self.build_fields[MsgId.STATUSTEXT](severity=severity, text=text.encode()[:50])
 
-    def gps_global_origin(self, k: int, sim_s: float) -> mavlink.MAVLink_message | None:
+    def gps_global_origin(self, k: int, sim_s: float) -> Outgoing | None:
         o = self.origin_e7[k]
         if o is None:
             return None
-        return mavlink.MAVLink_gps_global_origin_message(o[0], o[1], o[2], int(sim_s * 1e6))
+        return GPS_GLOBAL_ORIGIN, self.build_fields[GPS_GLOBAL_ORIGIN](
+            latitude=o[0], longitude=o[1], altitude=o[2], time_usec=int(sim_s * 1e6))
 
-    def autopilot_version(self, k: int) -> mavlink.MAVLink_message:
-        # COMMAND_INT, SET_ATT/POS_TARGET, MAVLINK2 + how integer parameters travel
-        # (PX4: PARAM_ENCODE_BYTEWISE 16; ArduPilot: PARAM_FLOAT 2, C-cast by value).
-        caps = 8 | 128 | 256 | 8192 | (16 if self.aps[k].dialect.param_encoding == "bytewise" else 2)
-        return mavlink.MAVLink_autopilot_version_message(
-            caps, (1 << 24) | (15 << 16) | (0 << 8) | 255, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8,
-            0x26AC, 0x0011, 0x5D00000000 + self.aps[k].sysid)
+    def autopilot_version(self, k: int) -> Outgoing:
+        # how integer parameters travel: PX4 byte-wise (PARAM_ENCODE_BYTEWISE), ArduPilot C-cast by value
+        enc = _CAP.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE if self.aps[k].dialect.param_encoding == "bytewise" \
+            else _CAP.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT | _CAP.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
+        return AUTOPILOT_VERSION, self.build_fields[AUTOPILOT_VERSION](
+            capabilities=CAPABILITIES | enc, flight_sw_version=(1 << 24) | (15 << 16) | (0 << 8) | 255,
+            vendor_id=0x26AC, product_id=0x0011, uid=0x5D00000000 + self.aps[k].sysid)
 
-    def build(self, k: int, msgid: int, sim_s: float) -> mavlink.MAVLink_message | None:
+    def build(self, k: int, msgid: int, sim_s: float) -> Outgoing | None:
         """The current value of message msgid for vehicle k (None if not provided now)."""
         if msgid == HEARTBEAT:
             return self.heartbeat(k)
@@ -238,16 +273,16 @@ class TelemetryBuilder:
             if ap.origin_ned_m is None:
                 return None  # no local position before the EKF has an origin
             p, v = snap.pos_ned_m[k] - ap.origin_ned_m, snap.vel_ned_mps[k]
-            return mavlink.MAVLink_local_position_ned_message(tb, float(p[0]), float(p[1]), float(p[2]),
-                                                              float(v[0]), float(v[1]), float(v[2]))
+            return msgid, self._lpn(time_boot_ms=tb, x=float(p[0]), y=float(p[1]), z=float(p[2]), vx=float(v[0]),
+                                    vy=float(v[1]), vz=float(v[2]))
         if msgid == ATTITUDE:
             r, w = snap.rpy[k], s.omega_body_radps[k]
-            return mavlink.MAVLink_attitude_message(tb, float(r[0]), float(r[1]), float(r[2]),
-                                                    float(w[0]), float(w[1]), float(w[2]))
+            return msgid, self._att(time_boot_ms=tb, roll=float(r[0]), pitch=float(r[1]), yaw=float(r[2]),
+                                    rollspeed=float(w[0]), pitchspeed=float(w[1]), yawspeed=float(w[2]))
         if msgid == ATTITUDE_QUATERNION:
             q, w = snap.quat[k], s.omega_body_radps[k]
-            return mavlink.MAVLink_attitude_quaternion_message(tb, float(q[0]), float(q[1]), float(q[2]),
-                                                               float(q[3]), float(w[0]), float(w[1]), float(w[2]))
+            return msgid, self._attq(time_boot_ms=tb, q1=float(q[0]), q2=float(q[1]), q3=float(q[2]), q4=float(q[3]),
+                                     rollspeed=float(w[0]), pitchspeed=float(w[1]), yawspeed=float(w[2]))
         if msgid == GLOBAL_POSITION_INT:
             if ap.origin_ned_m is None:
                 return None
@@ -255,41 +290,45 @@ class TelemetryBuilder:
             v = snap.vel_ned_mps[k]
             hdg = int(round(math.degrees(snap.rpy[k, 2]) * 100)) % 36000
             rel_mm = int(round((self.home_ned_m[k, 2] - snap.pos_ned_m[k, 2]) * 1000))
-            return mavlink.MAVLink_global_position_int_message(
-                tb, lat, lon, alt, rel_mm, _i16(v[0] * 100), _i16(v[1] * 100),
-                _i16(v[2] * 100), hdg)
+            return msgid, self._gpi(time_boot_ms=tb, lat=lat, lon=lon, alt=alt, relative_alt=rel_mm,
+                                    vx=_i16(v[0] * 100), vy=_i16(v[1] * 100), vz=_i16(v[2] * 100), hdg=hdg)
         if msgid == GPS_RAW_INT:
             v = snap.vel_ned_mps[k]
             if ap.origin_ned_m is None:
-                return mavlink.MAVLink_gps_raw_int_message(int(sim_s * 1e6), 1, 0, 0, 0, 65535, 65535, 65535,
-                                                           65535, 0)
+                return msgid, self._gps(time_usec=int(sim_s * 1e6), fix_type=GpsFixType.GPS_FIX_TYPE_NO_FIX,
+                                        eph=65535, epv=65535, vel=65535, cog=65535)
             lat, lon, alt = self._geodetic(snap, k)
             cog = int(round(math.degrees(math.atan2(v[1], v[0])) * 100)) % 36000
-            return mavlink.MAVLink_gps_raw_int_message(
-                int(sim_s * 1e6), 3, lat, lon, alt, 80, 120,
-                min(65534, int(math.hypot(v[0], v[1]) * 100)), cog, 12)
+            return msgid, self._gps(time_usec=int(sim_s * 1e6), fix_type=GpsFixType.GPS_FIX_TYPE_3D_FIX, lat=lat,
+                                    lon=lon, alt=alt, eph=80, epv=120, vel=min(65534, int(math.hypot(v[0], v[1]) * 100)),
+                                    cog=cog, satellites_visible=12)
         if msgid == SYS_STATUS:
             health = (SENSORS | (PREARM_CHECK if ap.prearm_failure(sim_s) is None else 0)
                       | (0 if ap.fence_breached else GEOFENCE))
             if ap.origin_ned_m is None:
-                health &= ~0x20  # GPS not healthy before the fix
+                health &= ~GPS_SENSOR  # GPS not healthy before the fix
             pct, mv = self._battery(k)
             present = SENSORS | PREARM_CHECK | GEOFENCE
-            return mavlink.MAVLink_sys_status_message(present, present, health,
-                                                      200, mv, -1, pct, 0, 0, 0, 0, 0, 0)
+            return msgid, self._sys(onboard_control_sensors_present=present, onboard_control_sensors_enabled=present,
+                                    onboard_control_sensors_health=health, load=200, voltage_battery=mv,
+                                    current_battery=-1, battery_remaining=pct)
         if msgid == BATTERY_STATUS:
             pct, mv = self._battery(k)
-            cells = [mv // BATTERY_CELLS] * BATTERY_CELLS + [65535] * (10 - BATTERY_CELLS)
-            return mavlink.MAVLink_battery_status_message(0, 1, 1, 32767, cells, -1, -1, -1, pct)
+            cells = (mv // BATTERY_CELLS,) * BATTERY_CELLS + (65535,) * (10 - BATTERY_CELLS)
+            return msgid, self.build_fields[BATTERY_STATUS](
+                id=0, battery_function=MavBatteryFunction.MAV_BATTERY_FUNCTION_ALL,
+                type=MavBatteryType.MAV_BATTERY_TYPE_LIPO, temperature=32767, voltages=cells, current_battery=-1,
+                current_consumed=-1, energy_consumed=-1, battery_remaining=pct)
         if msgid == EXTENDED_SYS_STATE:
-            return mavlink.MAVLink_extended_sys_state_message(0, int(ap.landed_state))
+            return msgid, self.build_fields[EXTENDED_SYS_STATE](landed_state=int(ap.landed_state))
         if msgid == HOME_POSITION:
             h = self.home_ned_m[k] - (ap.origin_ned_m if ap.origin_ned_m is not None else 0.0)
-            return mavlink.MAVLink_home_position_message(
-                int(self.home_lat_e7[k]), int(self.home_lon_e7[k]), int(self.home_alt_mm[k]),
-                float(h[0]), float(h[1]), float(h[2]), [1.0, 0.0, 0.0, 0.0], 0.0, 0.0, 0.0, int(sim_s * 1e6))
+            return msgid, self.build_fields[HOME_POSITION](
+                latitude=int(self.home_lat_e7[k]), longitude=int(self.home_lon_e7[k]), altitude=int(self.home_alt_mm[k]),
+                x=float(h[0]), y=float(h[1]), z=float(h[2]), q=(1.0, 0.0, 0.0, 0.0), time_usec=int(sim_s * 1e6))
         if msgid == SYSTEM_TIME:
-            return mavlink.MAVLink_system_time_message(int(round((self.epoch_unix_s + sim_s) * 1e6)), tb)
+            return msgid, self.build_fields[SYSTEM_TIME](
+                time_unix_usec=int(round((self.epoch_unix_s + sim_s) * 1e6)), time_boot_ms=tb)
         return None
 
     def _battery(self, k: int) -> tuple[int, int]:

@@ -10,8 +10,8 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 from pymavlink.dialects.v20 import common as mavlink  # noqa: E402
 
-from sim_bridge.fleet import find_free_udp_range  # noqa: E402
-from sim_bridge.sitl.config import EndpointConfig, SitlConfig  # noqa: E402
+from sim_bridge.sitl.config import EndpointConfig, sitl_config  # noqa: E402
+from sim_bridge.sitl.ports import find_free_udp_range  # noqa: E402
 
 
 def free_udp_base_port(count: int) -> int:
@@ -62,9 +62,9 @@ class MavClient:
 @contextlib.contextmanager
 def running_sitl(vehicles: int) -> Iterator:
     """A SITL of `vehicles` on its own thread, on 127.0.0.1 test ports; stopped on exit."""
-    from sim_bridge.sitl.server import BackgroundSitl  # the numba-heavy import only when used
+    from sim_bridge.sitl.background import BackgroundSitl  # the numba-heavy import only when used
 
-    bg = BackgroundSitl(SitlConfig(vehicles=vehicles, endpoints=local_endpoints(vehicles)))
+    bg = BackgroundSitl(sitl_config(vehicles, endpoints=local_endpoints(vehicles)))
     try:
         yield bg.start()
     finally:

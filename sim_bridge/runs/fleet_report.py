@@ -14,12 +14,16 @@ from typing import Any
 import numpy as np
 
 from companion.link.signing import SigningCounters
-from sim_bridge.results import MeanMax, RunMetrics
+from companion.node.stats import AgentStats
+from sim_bridge.reports.results import RunMetrics
 from sim_bridge.sitl.status import SitlStatus
+from sim_bridge.world.transport import MeanMax
 
 
 @dataclass(frozen=True)
 class CpuShare:
+    """The agents' CPU use, as a fraction of one core (None: not measured)."""
+
     mean: float | None
     """Fraction of one core, averaged over the agents."""
     max: float | None
@@ -40,6 +44,9 @@ class Latency:
 
 @dataclass(frozen=True)
 class DeadlineMisses:
+    """Setpoint intervals longer than the agents' tick deadline, summed over the agents:
+    misses out of intervals measured, and their fraction (None: none measured)."""
+
     count: int
     intervals: int
     fraction: float | None
@@ -70,6 +77,8 @@ class FleetSection:
     swarm_link_bytes_per_s_per_vehicle: float | None
     signing: dict[str, SigningCounters] | None = None
     """Per link kind ("autopilot", "swarm"): what the agents' signing layers dropped, summed (None unsigned)."""
+    aborted: str = ""
+    """Why the harness stopped the run itself (no agent left that could fly it), or ""."""
 
 
 @dataclass(frozen=True)
@@ -110,16 +119,17 @@ def _stat(xs: list[float], fn) -> float | None:
     return float(fn(xs)) if xs else None
 
 
-def agent_figures(stats: list[dict[str, Any]], cpu: list[float], pss: list[float], cpu_from_sim_s: float) -> dict:
-    """The per-agent figures of the fleet section, from the agents' stats files (JSON)."""
-    p50 = [s["latency_ms"]["p50"] for s in stats if s.get("latency_ms")]
-    p99 = [s["latency_ms"]["p99"] for s in stats if s.get("latency_ms")]
-    misses = sum(s.get("deadline_misses", 0) for s in stats)
-    intervals = sum(s.get("setpoint_intervals", 0) for s in stats)
-    startup = [s["startup_s"] for s in stats if s.get("startup_s") is not None]
+def agent_figures(stats: list[AgentStats], cpu: list[float], pss: list[float], cpu_from_sim_s: float) -> dict:
+    """The per-agent figures of the fleet section, from the agents' stats files."""
+    p50 = [s.latency_ms.p50 for s in stats if s.latency_ms is not None]
+    p99 = [s.latency_ms.p99 for s in stats if s.latency_ms is not None]
+    misses = sum(s.deadline_misses for s in stats)
+    intervals = sum(s.setpoint_intervals for s in stats)
+    startup = [s.startup_s for s in stats if s.startup_s is not None]
+    hists = [s.latency_hist.to_json() if s.latency_hist is not None else None for s in stats]
     return dict(
         agent_cpu_fraction_of_core=CpuShare(_stat(cpu, np.mean), _stat(cpu, np.max), cpu_from_sim_s),
-        agent_latency_ms=Latency(pooled_percentiles([s.get("latency_hist") for s in stats], (50, 99, 99.9)),
+        agent_latency_ms=Latency(pooled_percentiles(hists, (50, 99, 99.9)),
                                  _stat(p50, np.median), _stat(p99, np.max), _stat(p99, np.median)),
         setpoint_deadline_misses=DeadlineMisses(misses, intervals, misses / intervals if intervals else None),
         agent_startup_s=MeanMax(mean=_stat(startup, np.mean), max=_stat(startup, np.max)),
@@ -127,31 +137,32 @@ def agent_figures(stats: list[dict[str, Any]], cpu: list[float], pss: list[float
     )
 
 
-def signing_totals(stats: list[dict[str, Any]]) -> dict[str, SigningCounters]:
+def signing_totals(stats: list[AgentStats]) -> dict[str, SigningCounters]:
     """What the agents' signing layers dropped, summed per link."""
     out: dict[str, SigningCounters] = {}
     for s in stats:
-        for link, counters in (s.get("signing") or {}).items():
-            tot = dataclasses.asdict(out.get(link, SigningCounters()))
-            for name, value in counters.items():
-                if name in tot:
-                    tot[name] += int(value)
-            out[link] = SigningCounters(**tot)
+        for link, counters in s.signing.links():
+            tot = out.get(link, SigningCounters())
+            out[link] = SigningCounters(**{f.name: getattr(tot, f.name) + getattr(counters, f.name)
+                                           for f in dataclasses.fields(SigningCounters)})
     return out
 
 
 def summary_lines(report: FleetReport, out_dir: Path) -> list[str]:
     """The console summary of a fleet run (the headless summary plus the fleet figures)."""
-    from sim_bridge.simulate import summary_lines as headless_lines
+    from sim_bridge.reports.summary import summary_lines as headless_lines
 
     fl = report.fleet
     fmt = lambda x, p=2: "n/a" if x is None else f"{x:.{p}f}"  # noqa: E731
+    how = "INTERRUPTED" if fl.interrupted else ("ABORTED (" + fl.aborted + ")" if fl.aborted else "")
     if report.metrics is None:
-        lines = [f"run directory: {out_dir}", "  INTERRUPTED before the SITL recorded its first sample: nothing to score"]
+        lines = [f"run directory: {out_dir}", f"  {how or 'STOPPED'} before the SITL recorded its first sample: "
+                 "nothing to score"]
     else:
         lines = headless_lines(report.metrics, out_dir)
-        if fl.interrupted:
-            lines.insert(1, f"  INTERRUPTED at t = {fl.sitl_status.sim_s:.1f} s: the checks below see a partial run")
+        if how:
+            lines.insert(1, f"  {how} at t = {fl.sitl_status.sim_s:.1f} s: the mission did not complete; the checks "
+                         "below see a partial run")
     dm, lat = fl.setpoint_deadline_misses, fl.agent_latency_ms.pooled
     lines += [
         f"  fleet: {fl.agents} agent processes ({fl.dialect}, {fl.output}, "

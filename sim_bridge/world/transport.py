@@ -12,7 +12,11 @@ run and a SITL run with one seed lose the same messages.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
+from dataclasses import dataclass as std_dataclass
+from dataclasses import field
+from typing import overload
 
 import numpy as np
 from numba import njit
@@ -21,7 +25,62 @@ from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT
 from companion.swarm import SwarmStates, SwarmView
-from sim_bridge.results import AgeSummary, LinkStats
+
+
+@std_dataclass(frozen=True)
+class AgeSummary:
+    """Ages of neighbour states when delivered, s (None when nothing was delivered)."""
+
+    count: int = 0
+    mean: float | None = None
+    p50: float | None = None
+    p90: float | None = None
+    p99: float | None = None
+    max: float | None = None
+
+
+@std_dataclass(frozen=True)
+class MeanMax:
+    """Mean and maximum of a per-vehicle figure (units those of the field that holds it);
+    None when nothing was measured."""
+
+    mean: float | None = None
+    max: float | None = None
+
+
+@std_dataclass(frozen=True)
+class LinkStats:
+    """Neighbour transport of one run: the headless transport or the SITL's radio medium.
+
+    Fields a transport does not measure are None (the headless transport has no bytes,
+    the radio medium no configured-but-unused kind).
+    """
+
+    copies_sent: int = 0
+    """Copies of published states addressed to receivers (one per sender-receiver pair)."""
+    copies_delivered: int = 0
+    delivered_fraction: float | None = None
+    age_at_delivery_s: AgeSummary = field(default_factory=AgeSummary)
+    kind: str | None = None
+    loss: float | None = None
+    delay_s: float | None = None
+    jitter_s: float | None = None
+    bytes_per_s_per_vehicle: MeanMax | None = None
+    states_received: int | None = None
+    copies_lost: int | None = None
+    bad_frames: int | None = None
+    foreign_frames: int | None = None
+
+    @classmethod
+    def from_json(cls, d: dict | None) -> "LinkStats":
+        """Read the dict run.json stores (older runs may lack fields)."""
+        d = dict(d or {})
+        d["age_at_delivery_s"] = AgeSummary(**d.get("age_at_delivery_s", {}))
+        if d.get("bytes_per_s_per_vehicle") is not None:
+            d["bytes_per_s_per_vehicle"] = MeanMax(**d["bytes_per_s_per_vehicle"])
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in d.items() if k in names})
+
 
 _MASK64 = np.uint64(0xFFFFFFFFFFFFFFFF)
 
@@ -41,7 +100,12 @@ class LinkConfig:
     """Receivers further than this from the sender hear nothing (None: everyone)."""
 
 
-def _splitmix(x: np.ndarray) -> np.ndarray:
+@overload
+def _splitmix(x: np.uint64) -> np.uint64: ...
+@overload
+def _splitmix(x: np.ndarray) -> np.ndarray: ...
+def _splitmix(x: np.ndarray | np.uint64) -> np.ndarray | np.uint64:
+    """SplitMix64's finaliser, elementwise on uint64 (a scalar key or an array)."""
     x = (x + np.uint64(0x9E3779B97F4A7C15)) & _MASK64
     x = ((x ^ (x >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)) & _MASK64
     x = ((x ^ (x >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)) & _MASK64
@@ -51,6 +115,7 @@ def _splitmix(x: np.ndarray) -> np.ndarray:
 def hashed_uniform(seed: int, sender: np.ndarray, stamp_us: np.ndarray, receiver: np.ndarray,
                    stream: int) -> np.ndarray:
     """Uniform [0, 1) draws keyed by (seed, sender, stamp, receiver, stream); broadcasting."""
+    x: np.ndarray | np.uint64  # (the scalar key, then the broadcast array)
     with np.errstate(over="ignore"):
         x = _splitmix(np.uint64(seed & 0xFFFFFFFFFFFFFFFF) ^ np.uint64(stream * 0x632BE59BD9B4E019 & 0xFFFFFFFFFFFFFFFF))
         x = _splitmix(x ^ np.asarray(sender, dtype=np.uint64))

@@ -76,7 +76,7 @@ the logs of a batch fit easily in memory (about 60 MB a run of paper_40)."""
 
 def _sweep_cfg(config_path: str, seed: int):
     """The scenario with this seed, without the launch study (a sweep scores the mission)."""
-    from sim_bridge.simulate import load_scenario
+    from sim_bridge.scenario import load_scenario
 
     cfg = load_scenario(config_path, seed)
     return dataclasses.replace(cfg, launch_study=dataclasses.replace(cfg.launch_study, enabled=False))
@@ -88,7 +88,7 @@ def _crashed(seed: int, wall_s: float, err: BaseException) -> SweepRun:
 
 
 def _scored(seed: int, wall_s: float, m) -> SweepRun:
-    """A SweepRun from one run's metrics (sim_bridge.results.Metrics)."""
+    """A SweepRun from one run's metrics (sim_bridge.reports.results.Metrics)."""
     st = m.stabilisation
     lat = [f.detection_latency_s for f in m.rotor_failures if f.detection_latency_s is not None]
     return SweepRun(
@@ -110,8 +110,8 @@ def run_one(config_path: str, seed: int) -> SweepRun:
     an exception becomes a failed SweepRun with its traceback."""
     t0 = time.perf_counter()
     try:
-        from sim_bridge.headless import run_scenario
-        from sim_bridge.metrics import compute_metrics
+        from sim_bridge.reports.metrics import compute_metrics
+        from sim_bridge.runs.headless import run_scenario
 
         m = compute_metrics(run_scenario(_sweep_cfg(config_path, seed), progress=False), None)
     except Exception as err:  # kept, not lost: the sweep reports it with the seed
@@ -127,8 +127,8 @@ def run_seeds(config_path: str, seeds: list[int]) -> list[SweepRun]:
     others are not lost."""
     t0 = time.perf_counter()
     try:
-        from sim_bridge.headless import run_batch
-        from sim_bridge.metrics import compute_metrics
+        from sim_bridge.reports.metrics import compute_metrics
+        from sim_bridge.runs.headless import run_batch
 
         results = run_batch([_sweep_cfg(config_path, s) for s in seeds], progress=False)
     except Exception:
@@ -243,7 +243,7 @@ def run_sweep(config_path: str | Path, seeds: list[int], workers: int = 1, addre
     """
     from tqdm import tqdm
 
-    from sim_bridge.simulate import load_scenario
+    from sim_bridge.scenario import load_scenario
 
     path = str(Path(config_path).resolve())
     load_scenario(path)  # a bad config fails once, here, with its path and reason
@@ -334,7 +334,7 @@ def markdown(runs: list[SweepRun], s: dict, title: str) -> str:
 def write_results(runs: list[SweepRun], out_dir: Path, title: str, safety_distance_m: float,
                   figures: bool = True) -> dict:
     """runs.csv, summary.md, summary.json, failures/SEED.txt (tracebacks) and figures."""
-    from sim_bridge.simulate import write_csv
+    from sim_bridge.reports.summary import write_csv
 
     out_dir.mkdir(parents=True, exist_ok=True)
     write_csv(out_dir / "runs.csv", [{**{k: v for k, v in dataclasses.asdict(r).items() if k != "trace"},
@@ -347,7 +347,7 @@ def write_results(runs: list[SweepRun], out_dir: Path, title: str, safety_distan
     (out_dir / "summary.json").write_text(json.dumps(s, indent=2))
     (out_dir / "summary.md").write_text(markdown(runs, s, title))
     if figures and any(r.ok for r in runs):
-        from sim_bridge.figures_studies import fig_sweep
+        from sim_bridge.reports.figures_studies import fig_sweep
 
         fig_sweep(runs, safety_distance_m, out_dir)
     return s

@@ -8,12 +8,15 @@ import numpy as np
 
 from companion import frames
 from companion.agent import IN_FORMATION, Phase
-from sim_bridge.launch_so3 import So3Study
-from sim_bridge.launch_study import LaunchComparison
-from sim_bridge.record import RunResult
-from sim_bridge.results import (
+from sim_bridge.reports.launch_so3 import So3Study
+from sim_bridge.reports.launch_study import LaunchComparison
+from sim_bridge.reports.record import RunResult
+from sim_bridge.reports.results import (
     Assembly,
+    CommandOutcome,
+    CommandsOutcome,
     FormationDeviation,
+    LandingOutcome,
     MissionOutcome,
     ObstacleClearance,
     Performance,
@@ -24,7 +27,8 @@ from sim_bridge.results import (
     Stabilisation,
     VehicleSettle,
 )
-from sim_bridge.results import finite_or_none as _f
+from sim_bridge.reports.results import finite_or_none as _f
+from sim_bridge.scenario import ends_landed
 
 
 def formation_deviation(result: RunResult) -> tuple[np.ndarray, np.ndarray]:
@@ -85,15 +89,90 @@ def rotor_failures(result: RunResult) -> list[RotorFailureOutcome]:
     return out
 
 
+def _hover_end_index(result: RunResult) -> int:
+    """The log sample where the formation is judged: the last one, or for a mission that
+    lands the last before the first vehicle began to land (-1: no such sample)."""
+    t = result.log["t_s"]
+    if not math.isfinite(result.t_land_start_s):
+        return len(t) - 1
+    return int(np.searchsorted(t, result.t_land_start_s, side="left")) - 1
+
+
+def commands_outcome(result: RunResult) -> CommandsOutcome | None:
+    """The swarm commands of a run, with each vehicle's lag after each effective time (None:
+    a run without commands). A vehicle whose rotor failed before a command is not judged on it."""
+    if not result.commands:
+        return None
+    out, lags_all, in_time = [], [], True
+    for c in result.commands:
+        if c.seq == 0:
+            out.append(CommandOutcome(0, c.kind, c.issued_s, None, c.refused, len(c.applied_s), 0, 0, None, None,
+                                      None, 0))
+            continue
+        judged = ~(result.failed_at_s <= c.effective_s) if len(result.failed_at_s) else np.ones(len(c.applied_s), bool)
+        lag = c.applied_s[judged] - c.effective_s
+        done = lag[np.isfinite(lag)]
+        ok = int(np.sum(done <= 1.0 + 1e-9))
+        in_time &= ok == int(judged.sum())
+        lags_all.append(done)
+        out.append(CommandOutcome(
+            c.seq, c.kind, c.issued_s, _f(c.effective_s), None, int(judged.sum()), int(np.isfinite(c.held_s[judged]).sum()),
+            len(done), _f(np.percentile(done, 50)) if len(done) else None,
+            _f(np.percentile(done, 95)) if len(done) else None, _f(done.max()) if len(done) else None, ok))
+    every = np.concatenate(lags_all) if lags_all else np.zeros(0)
+    return CommandsOutcome(out, _f(np.percentile(every, 50)) if len(every) else None,
+                           _f(np.percentile(every, 95)) if len(every) else None,
+                           _f(every.max()) if len(every) else None, bool(in_time),
+                           sum(1 for c in result.commands if c.seq == 0))
+
+
+def landing(result: RunResult) -> LandingOutcome | None:
+    """The landing of a mission that lands (None for one that holds station): who is down,
+    and how close two vehicles came while any was descending. Judged on the vehicles
+    that are counted (a live agent) and healthy (no rotor failure) at the end."""
+    if not ends_landed(result.cfg):
+        return None
+    log = result.log
+    t = log["t_s"]
+    if not len(t):
+        return LandingOutcome(None, 0, 0, None, None, 0)
+    judged = log["counted"][-1] & ~(result.failed_at_s <= t[-1]) if len(result.failed_at_s) else log["counted"][-1]
+    down = log["down"][:, judged] if "down" in log else np.zeros((len(t), int(judged.sum())), bool)
+    all_down = np.flatnonzero(down.all(axis=1)) if down.shape[1] else np.zeros(0, int)
+    landing_now = (log["phase"][:, judged] == Phase.LAND).any(axis=1)
+    d_min, below = math.inf, set()
+    pos = log["pos_ned_m"][landing_now][:, judged].astype(float)
+    ids = np.flatnonzero(judged)
+    sep = result.cfg.safety.separation_m
+    for p in pos:  # (samples while landing) x (pairs)
+        d = np.linalg.norm(p[:, None, :] - p[None], axis=2)
+        iu = np.triu_indices(len(p), 1)
+        if len(iu[0]):
+            d_min = min(d_min, float(d[iu].min()))
+            for a, b in zip(*(x[d[iu] < sep] for x in iu)):
+                below.add((int(ids[a]), int(ids[b])))
+    return LandingOutcome(
+        land_start_s=_f(result.t_land_start_s), vehicles_down=int(down[-1].sum()) if len(down) else 0,
+        vehicles_judged=int(judged.sum()), all_down_s=float(t[all_down[0]]) if len(all_down) else None,
+        min_pair_distance_descending_m=d_min if math.isfinite(d_min) else None,
+        pairs_below_safety_distance_descending=len(below))
+
+
 def _stat(values: list[float], fn) -> float | None:
     return _f(fn(values)) if values else None
 
 
 def compute_metrics(result: RunResult, launch_study: list[LaunchComparison] | None,
-                    launch_so3: So3Study | None = None) -> RunMetrics:
-    """Score one run (headless or fleet) against the paper's figures and the checks."""
+                    launch_so3: So3Study | None = None, ended_early: str | None = None) -> RunMetrics:
+    """Score one run (headless or fleet) against the paper's figures and the checks.
+
+    Args:
+        ended_early: "interrupted" or "aborted" for a run stopped before its end: scored as
+            far as it got, but never as a completed mission.
+    """
     cfg = result.cfg
     t, dev = formation_deviation(result)
+    judged_at = _hover_end_index(result)
     stab = stabilisation(result)
     settle = [r.settle_time_s for r in stab if r.settle_time_s is not None]
     drift = [r.drift_m for r in stab if r.drift_m is not None]
@@ -116,7 +195,7 @@ def compute_metrics(result: RunResult, launch_study: list[LaunchComparison] | No
         ),
         link=result.link,
         formation_deviation=FormationDeviation(
-            final_max_m=_f(dev[-1]) if len(dev) else None,
+            final_max_m=_f(dev[judged_at]) if len(dev) and judged_at >= 0 else None,
             max_during_transit_m=_f(np.nanmax(dev[transit])) if transit.any() else None,
             series_1hz=Series(t_s=t[::every].round(3).tolist(), max_m=[_f(x) for x in dev[::every]]),
         ),
@@ -135,8 +214,11 @@ def compute_metrics(result: RunResult, launch_study: list[LaunchComparison] | No
             min_clearance_vehicle=s.min_clearance_vehicle + 1 if s.min_clearance_vehicle >= 0 else None,
             margin_m=cfg.safety.obstacle_margin_m,
         ),
-        mission=MissionOutcome(completed=not math.isnan(result.t_complete_s),
-                               completion_time_s=_f(result.t_complete_s)),
+        mission=MissionOutcome(completed=ended_early is None and not math.isnan(result.t_complete_s),
+                               completion_time_s=_f(result.t_complete_s) if ended_early is None else None,
+                               ended_early=ended_early),
+        landing=landing(result),
+        commands=commands_outcome(result),
         performance=Performance(
             wall_s=result.wall_s, sim_s=result.sim_s,
             real_time_factor=result.sim_s / result.wall_s if result.wall_s > 0 else None,
@@ -160,6 +242,13 @@ def _checks(m: RunMetrics, cfg) -> dict[str, bool]:
         "no_collisions": m.separation.collisions == 0,
         "obstacle_clearance_ok": clearance is None or clearance >= cfg.safety.obstacle_margin_m,
     }
+    if m.landing is not None:  # the formation is judged at the end of the hover, the landing here
+        checks["landing_all_down"] = m.landing.all_down_s is not None
+        checks["landing_separation_ok"] = (m.landing.min_pair_distance_descending_m or math.inf) >= \
+            cfg.safety.separation_m
+    if m.commands is not None:  # issue 19: every vehicle applies every command within 1 s
+        checks["commands_applied_within_1s"] = m.commands.all_applied_within_1s
+        checks["commands_accepted"] = m.commands.refused == 0
     if m.rotor_failures:  # every failed vehicle's agent declared it, so its neighbours could drop it
         checks["rotor_failures_detected"] = all(r.detection_latency_s is not None for r in m.rotor_failures)
     for c in m.launch_study or []:

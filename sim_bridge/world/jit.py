@@ -57,3 +57,11 @@ def agent_kernels():
 
     base = AgentKernels()
     return AgentKernels(**{name: compiled(getattr(base, name)) for name in AgentKernels.__dataclass_fields__})
+
+
+def output_kernels():
+    """companion.output.OutputKernels with every loop compiled (for simulating many vehicles)."""
+    from companion.output import OutputKernels
+
+    base = OutputKernels()
+    return OutputKernels(**{name: compiled(getattr(base, name)) for name in OutputKernels.__dataclass_fields__})

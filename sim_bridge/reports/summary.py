@@ -1,54 +1,9 @@
-"""`swarmdrop simulate`: run a scenario headless and write its run directory."""
+"""What a run prints and tabulates: the console summary of a run, and CSV tables."""
 from __future__ import annotations
 
-import dataclasses
-import json
 from pathlib import Path
 
-from companion.config import load_yaml
-from sim_bridge.figures import write_figures
-from sim_bridge.figures_studies import fig_launch_cdf
-from sim_bridge.headless import run_scenario
-from sim_bridge.launch_so3 import run_so3_study
-from sim_bridge.launch_study import run_launch_study
-from sim_bridge.metrics import compute_metrics
-from sim_bridge.record import save_log
-from sim_bridge.results import RunMetrics
-from sim_bridge.scenario import ScenarioConfig
-
-
-def load_scenario(path: str | Path, seed: int | None = None) -> ScenarioConfig:
-    """Load and validate a scenario YAML; seed overrides the file's seed.
-
-    Raises:
-        ConfigError: unknown keys or bad values, naming their dotted path.
-    """
-    cfg = load_yaml(ScenarioConfig, path)
-    return cfg if seed is None else dataclasses.replace(cfg, seed=seed)
-
-
-def simulate(cfg: ScenarioConfig, out_dir: Path, progress: bool = True, figures: bool | None = None) -> RunMetrics:
-    """Fly the launch study and the scenario, write the run directory, return metrics.
-
-    The run directory holds metrics.json, telemetry.npz (every state of every
-    vehicle at the log rate), config.json (the resolved config) and the figures.
-    """
-    out_dir.mkdir(parents=True, exist_ok=True)
-    ls = cfg.launch_study
-    study, traces = run_launch_study(cfg) if ls.enabled else (None, None)
-    so3 = run_so3_study(cfg) if ls.enabled and ls.so3_draws > 0 else None
-    result = run_scenario(cfg, progress=progress)
-    metrics = compute_metrics(result, study, so3)
-    (out_dir / "config.json").write_text(json.dumps(dataclasses.asdict(cfg), indent=2))
-    save_log(result, out_dir)
-    (out_dir / "metrics.json").write_text(json.dumps(metrics.to_json(), indent=2))
-    if so3 is not None:
-        write_csv(out_dir / "launch_so3.csv", so3.rows())
-    if cfg.output.figures if figures is None else figures:
-        write_figures(result, traces, out_dir)
-        if so3 is not None:
-            fig_launch_cdf(so3, out_dir)
-    return metrics
+from sim_bridge.reports.results import RunMetrics
 
 
 def write_csv(path: Path, rows: list[dict]) -> Path:
@@ -80,10 +35,15 @@ def summary_lines(metrics: RunMetrics, out_dir: Path) -> list[str]:
         f"  all assembled at:      {fmt(metrics.assembly.all_assembled_s, ' s', 1)};"
         f" transit start {fmt(metrics.assembly.transit_start_s, ' s', 1)}",
         f"  mission complete at:   {fmt(metrics.mission.completion_time_s, ' s', 1)}",
-        f"  final max deviation:   {fmt(f.final_max_m, ' m', 4)}",
+        f"  final max deviation:   {fmt(f.final_max_m, ' m', 4)}"
+        + (" (at the end of the hover, before landing)" if metrics.landing is not None else ""),
         f"  min separation:        {fmt(sep.min_pair_distance_m, ' m')} (UAVs {sep.min_pair_vehicles},"
         f" t = {fmt(sep.min_pair_time_s, ' s', 1)}); pairs < {sep.safety_distance_m} m: {sep.pairs_below_safety_distance}",
-        f"  min obstacle clearance:{fmt(metrics.obstacles.min_clearance_m, ' m')}",
+        f"  min obstacle clearance: {fmt(metrics.obstacles.min_clearance_m, ' m')}",
+        *([f"  landing:               {metrics.landing.vehicles_down}/{metrics.landing.vehicles_judged} down"
+           f" (all at {fmt(metrics.landing.all_down_s, ' s', 1)}), began {fmt(metrics.landing.land_start_s, ' s', 1)};"
+           f" min separation descending {fmt(metrics.landing.min_pair_distance_descending_m, ' m')}"]
+          if metrics.landing is not None else []),
         f"  speed:                 {fmt(perf.real_time_factor, 'x real time', 1)},"
         f" {_steps(perf.vehicle_steps_per_s)} vehicle-steps/s",
     ]

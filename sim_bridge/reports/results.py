@@ -10,11 +10,11 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
-if TYPE_CHECKING:  # launch_study imports the scenario, which imports the transport, which uses these types
-    from sim_bridge.launch_so3 import So3Study
-    from sim_bridge.launch_study import LaunchComparison
+from sim_bridge.reports.launch_so3 import So3Study
+from sim_bridge.reports.launch_study import LaunchComparison
+from sim_bridge.world.transport import LinkStats
 
 
 def finite_or_none(x: Any) -> float | None:
@@ -23,58 +23,6 @@ def finite_or_none(x: Any) -> float | None:
         return None
     x = float(x)
     return None if math.isnan(x) else x
-
-
-@dataclass(frozen=True)
-class AgeSummary:
-    """Ages of neighbour states when delivered, s (None when nothing was delivered)."""
-
-    count: int = 0
-    mean: float | None = None
-    p50: float | None = None
-    p90: float | None = None
-    p99: float | None = None
-    max: float | None = None
-
-
-@dataclass(frozen=True)
-class MeanMax:
-    mean: float | None = None
-    max: float | None = None
-
-
-@dataclass(frozen=True)
-class LinkStats:
-    """Neighbour transport of one run: the headless transport or the SITL's radio medium.
-
-    Fields a transport does not measure are None (the headless transport has no bytes,
-    the radio medium no configured-but-unused kind).
-    """
-
-    copies_sent: int = 0
-    """Copies of published states addressed to receivers (one per sender-receiver pair)."""
-    copies_delivered: int = 0
-    delivered_fraction: float | None = None
-    age_at_delivery_s: AgeSummary = field(default_factory=AgeSummary)
-    kind: str | None = None
-    loss: float | None = None
-    delay_s: float | None = None
-    jitter_s: float | None = None
-    bytes_per_s_per_vehicle: MeanMax | None = None
-    states_received: int | None = None
-    copies_lost: int | None = None
-    bad_frames: int | None = None
-    foreign_frames: int | None = None
-
-    @classmethod
-    def from_json(cls, d: dict | None) -> "LinkStats":
-        """Read the dict run.json stores (older runs may lack fields)."""
-        d = dict(d or {})
-        d["age_at_delivery_s"] = AgeSummary(**d.get("age_at_delivery_s", {}))
-        if d.get("bytes_per_s_per_vehicle") is not None:
-            d["bytes_per_s_per_vehicle"] = MeanMax(**d["bytes_per_s_per_vehicle"])
-        names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in d.items() if k in names})
 
 
 @dataclass(frozen=True)
@@ -94,6 +42,10 @@ class VehicleSettle:
 
 @dataclass(frozen=True)
 class Stabilisation:
+    """Recovery after release, over the vehicles (metrics.json "stabilisation"): settle
+    times in s after release, drifts in m from the release point (None: no vehicle
+    stabilised), and each vehicle's own figures."""
+
     all_stabilised: bool
     max_settle_time_s: float | None
     mean_settle_time_s: float | None
@@ -104,6 +56,9 @@ class Stabilisation:
 
 @dataclass(frozen=True)
 class Assembly:
+    """When the formation assembled and when transit started, s of mission time (None: it
+    never happened)."""
+
     all_assembled_s: float | None
     assembly_time_after_last_release_s: float | None
     transit_start_s: float | None
@@ -113,12 +68,19 @@ class Assembly:
 
 @dataclass(frozen=True)
 class Series:
+    """A time series as JSON lists: t_s (s) and, per sample, the largest formation error
+    (m; None where no vehicle was in formation)."""
+
     t_s: list[float]
     max_m: list[float | None]
 
 
 @dataclass(frozen=True)
 class FormationDeviation:
+    """Largest distance of a formation-phase vehicle from its slot h_i(t), m: where the
+    formation is judged (the end, or the end of the hover for a mission that lands), the
+    worst during transit, and a ~1 Hz series."""
+
     final_max_m: float | None
     max_during_transit_m: float | None
     series_1hz: Series
@@ -126,6 +88,11 @@ class FormationDeviation:
 
 @dataclass(frozen=True)
 class Separation:
+    """Closest approach between healthy vehicles (centre to centre, m), pairs closer than the
+    safety distance, collisions, and how close a vehicle with a failed rotor came to a healthy
+    one. Sampled on every recorder update: each agent tick headless (sampled_at_hz is the
+    scenario's agent rate), each SITL tick in a fleet run."""
+
     safety_distance_m: float
     min_pair_distance_m: float | None
     min_pair_time_s: float | None
@@ -158,6 +125,9 @@ class RotorFailureOutcome:
 
 @dataclass(frozen=True)
 class ObstacleClearance:
+    """Smallest gap between a vehicle centre and an obstacle's surface, m, when (s) and
+    whose (1-based); None without obstacles. margin_m is the required clearance."""
+
     min_clearance_m: float | None
     min_clearance_time_s: float | None
     min_clearance_vehicle: int | None
@@ -166,12 +136,74 @@ class ObstacleClearance:
 
 @dataclass(frozen=True)
 class MissionOutcome:
+    """Whether and when the mission completed: every counted vehicle holding its final
+    slot, or, for a mission that lands, every one landed and disarmed."""
+
     completed: bool
     completion_time_s: float | None
+    ended_early: str | None = None
+    """"interrupted" (Ctrl-C) or "aborted" (no agent left to fly it): an early end is never a
+    completion, whatever was reached before it. None for a run that ran its course."""
+
+
+@dataclass(frozen=True)
+class LandingOutcome:
+    """A mission that lands (mission.phases.land_after_hover_s): the formation is judged at
+    the end of the hover (FormationDeviation.final_max_m), the landing here."""
+
+    land_start_s: float | None
+    """When the first vehicle began to land (the end of the hover)."""
+    vehicles_down: int
+    """Vehicles landed and disarmed at the end of the run (of those judged)."""
+    vehicles_judged: int
+    """Vehicles the landing is judged on (healthy, with a live agent)."""
+    all_down_s: float | None
+    """When the last of them was down (None: not all were)."""
+    min_pair_distance_descending_m: float | None
+    """Closest approach of two judged vehicles while any was landing."""
+    pairs_below_safety_distance_descending: int
+
+
+@dataclass(frozen=True)
+class CommandOutcome:
+    """One swarm command (sim_bridge.reports.record.CommandRecord), summarised: how many vehicles
+    held it and flew it, and how late after its effective time (applied - effective, s; a
+    vehicle that held it in time flies it at its first agent tick from then)."""
+
+    seq: int
+    kind: str
+    issued_s: float
+    effective_s: float | None
+    refused: str | None
+    vehicles: int
+    held: int
+    applied: int
+    lag_p50_s: float | None
+    lag_p95_s: float | None
+    lag_max_s: float | None
+    within_1s: int
+    """Vehicles that flew it no later than 1 s after its effective time (the issue's figure)."""
+
+
+@dataclass(frozen=True)
+class CommandsOutcome:
+    """Every swarm command of a run, and the lag of every vehicle over all of them."""
+
+    commands: list[CommandOutcome]
+    lag_p50_s: float | None
+    lag_p95_s: float | None
+    lag_max_s: float | None
+    all_applied_within_1s: bool
+    """Every vehicle flew every command the source issued within 1 s of its effective time."""
+    refused: int
+    """Commands the source refused (named in their entries)."""
 
 
 @dataclass(frozen=True)
 class Performance:
+    """What the run cost: wall-clock and simulated seconds, their ratio, vehicle physics
+    steps (per wall second), and the physics and agent rates it ran at (Hz)."""
+
     wall_s: float
     sim_s: float
     real_time_factor: float | None
@@ -201,6 +233,10 @@ class RunMetrics:
     mission: MissionOutcome
     performance: Performance
     rotor_failures: list[RotorFailureOutcome] = field(default_factory=list)
+    landing: LandingOutcome | None = None
+    """Only for a mission that lands."""
+    commands: CommandsOutcome | None = None
+    """Only for a run with swarm commands."""
     launch_study: list[LaunchComparison] | None = None
     launch_so3: So3Study | None = None
     """Both controllers over releases at random attitudes (summary in JSON; per draw in launch_so3.csv)."""

@@ -16,11 +16,12 @@ from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT
 from companion.control import geometric, pid, so3
-from companion.control.geometric import N_SP, pack_control_params, pack_setpoint
+from companion.control.geometric import N_SP, SP_ACC, SP_POS, SP_Q, max_thrust_n, pack_control_params, pack_setpoint
 from companion.params import GRAVITY_MPS2, InnerLoopConfig, VehicleParams
 from companion.state import FleetSetpoint, FleetState
-from sim_bridge.dynamics import allocate, motor_coeffs, pack_vehicle_params, rigid_body_step
-from sim_bridge.jit import compiled
+from sim_bridge.world.autopilot_model import G_STYLE, LOOP_OFF, N_G, N_M, PositionController, position_loop_accel
+from sim_bridge.world.dynamics import VP_G, allocate, motor_coeffs, pack_vehicle_params, rigid_body_step
+from sim_bridge.world.jit import compiled
 
 load_mat, store_mat = compiled(so3.load_mat), compiled(so3.store_mat)
 geometric_core, pid_core = compiled(geometric.geometric_core), compiled(pid.pid_core)
@@ -92,6 +93,12 @@ def hover_rotor_speed_radps(vp: VehicleParams) -> float:
     return q
 
 
+def hover_thrust_norm(vp: VehicleParams) -> float:
+    """The collective thrust that carries the vehicle, as a fraction of its maximum (the true
+    value of an autopilot's hover-thrust parameter, MPC_THR_HOVER / MOT_THST_HOVER)."""
+    return vp.mass_kg * GRAVITY_MPS2 / max_thrust_n(vp)
+
+
 def hover_state(n: int, vp: VehicleParams, pos_ned_m: np.ndarray | None = None) -> FleetState:
     """N vehicles level, at rest, rotors at hover speed; pos_ned_m (N, 3) or origin."""
     st = FleetState.zeros(n)
@@ -117,8 +124,10 @@ def _gusts(gust0, noise, phi, sig):
 
 @njit(cache=True)
 def _physics_loop(n_steps, active, pos, vel, rot, om, rotor, integ, sp, cprm, vprm, dt, ctrl, mot, wind, ground_z,
-                  rotor_scale):
+                  rotor_scale, acc_ext, loop_gains, loop_mem):
     n_wind = wind.shape[0]
+    work = np.empty(sp.shape[1])
+    grav = vprm[VP_G]
     for i in range(pos.shape[0]):
         if not active[i]:
             continue
@@ -128,20 +137,34 @@ def _physics_loop(n_steps, active, pos, vel, rot, om, rotor, integ, sp, cprm, vp
         w = (om[i, 0], om[i, 1], om[i, 2])
         q = (rotor[i, 0], rotor[i, 1], rotor[i, 2], rotor[i, 3])
         xi = (integ[i, 0], integ[i, 1], integ[i, 2], integ[i, 3], integ[i, 4], integ[i, 5])
+        de = (acc_ext[i, 0], acc_ext[i, 1], acc_ext[i, 2])
         spi = sp[i]
+        # The autopilot's position loops fly position-family setpoints (attitude ones bypass them):
+        # the inner controller gets the acceleration they ask for, as the only thing commanded.
+        looped = loop_gains[i, G_STYLE] != LOOP_OFF and not math.isfinite(spi[SP_Q])
+        lg, lm = loop_gains[i], loop_mem[i]
+        if looped:
+            for c in range(sp.shape[1]):
+                work[c] = spi[c]
+            for c in range(6):
+                work[SP_POS + c] = math.nan  # (SP_POS..SP_VEL+2: position and velocity)
+            spi = work
         s0, s1, s2, s3 = rotor_scale[i, 0], rotor_scale[i, 1], rotor_scale[i, 2], rotor_scale[i, 3]
         healthy = s0 == 1.0 and s1 == 1.0 and s2 == 1.0 and s3 == 1.0
         for k in range(n_steps):
+            if looped:
+                a = position_loop_accel(p, v, sp[i], lg, lm, dt, grav)
+                work[SP_ACC], work[SP_ACC + 1], work[SP_ACC + 2] = a
             if ctrl == CTRL_GEOMETRIC:
                 f, m = geometric_core(p, v, r, w, spi, cprm)
             else:
                 f, m, xi = pid_core(p, v, r, w, spi, cprm, xi, dt)
             qc = allocate(f, m, vprm)
-            if not healthy:  # a failed rotor's command is 0 (sim_bridge.faults)
+            if not healthy:  # a failed rotor's command is 0 (sim_bridge.world.faults)
                 qc = (qc[0] * s0, qc[1] * s1, qc[2] * s2, qc[3] * s3)
             kw = k if n_wind > 1 else 0
             wd = (wind[kw, 0], wind[kw, 1], wind[kw, 2])
-            p, v, r, w, q = rigid_body_step(p, v, r, w, q, qc, vprm, dt, mot, wd, ground_z)
+            p, v, r, w, q = rigid_body_step(p, v, r, w, q, qc, vprm, dt, mot, wd, ground_z, de)
         pos[i, 0], pos[i, 1], pos[i, 2] = p
         vel[i, 0], vel[i, 1], vel[i, 2] = v
         store_mat(rot, i, r)
@@ -183,7 +206,8 @@ class Physics:
         self._mot = motor_coeffs(vehicle.motor_time_constant_s, self.dt_s)
         self._ctrl = CTRL_GEOMETRIC if inner.controller == "geometric" else CTRL_PID
         self._shared_wind = isinstance(wind, WindField)
-        self._ones = np.ones((0, 4))
+        self._ones, self._zeros3 = np.ones((0, 4)), np.zeros((0, 3))
+        self._no_gains, self._no_memory = np.zeros((0, N_G)), np.zeros((0, N_M))
         self.wind_field = wind if isinstance(wind, WindField) else WindField(wind or WindConfig(), self.dt_s, self.rng)
 
     def warm_up(self) -> None:
@@ -209,7 +233,8 @@ class Physics:
         return self.wind_field.advance(n_steps)
 
     def step(self, state: FleetState, setpoint: FleetSetpoint | np.ndarray, n_steps: int = 1,
-             active: np.ndarray | None = None, rotor_scale: np.ndarray | None = None) -> None:
+             active: np.ndarray | None = None, rotor_scale: np.ndarray | None = None,
+             acc_ext_ned_mps2: np.ndarray | None = None, loop: PositionController | None = None) -> None:
         """Advance every active vehicle n_steps physics steps in place; controller (geometric
         or PID per inner.controller) runs every physics step on the held setpoint. Inactive
         vehicles are untouched.
@@ -221,7 +246,14 @@ class Physics:
                 groups packs once and hands each its rows).
             active: (N,) bool mask, default all.
             rotor_scale: (N, 4) factor on each rotor's speed command (1 healthy, 0 a failed
-                rotor: sim_bridge.faults.RotorFaults.scale); default all 1.
+                rotor: sim_bridge.world.faults.RotorFaults.scale); default all 1.
+            acc_ext_ned_mps2: (N, 3) external acceleration on each vehicle beside gravity and
+                drag (an estimator's bias: sim_bridge.world.estimator.bias_disturbance_ned_mps2);
+                default none.
+            loop: the autopilots' position loops (N rows; sim_bridge.world.autopilot_model):
+                every physics step they turn each position-family setpoint into the
+                acceleration the inner controller flies (their memory advances in place);
+                default none: the inner controller flies the setpoint itself.
         Raises:
             ValueError: on size mismatch or negative n_steps.
         """
@@ -241,21 +273,36 @@ class Physics:
             raise ValueError(f"active must have shape ({n},)")
         if n_steps == 0 or n == 0:
             return
+        if self._ones.shape[0] != n:
+            self._ones, self._zeros3 = np.ones((n, 4)), np.zeros((n, 3))
+            self._no_gains, self._no_memory = np.zeros((n, N_G)), np.zeros((n, N_M))
         if rotor_scale is None:
-            if self._ones.shape[0] != n:
-                self._ones = np.ones((n, 4))
             rotor_scale = self._ones
         elif rotor_scale.shape != (n, 4):
             raise ValueError(f"rotor_scale must have shape ({n}, 4)")
+        if acc_ext_ned_mps2 is None:
+            acc_ext_ned_mps2 = self._zeros3
+        elif acc_ext_ned_mps2.shape != (n, 3):
+            raise ValueError(f"acc_ext_ned_mps2 must have shape ({n}, 3)")
+        if loop is None:
+            gains, memory = self._no_gains, self._no_memory
+        else:
+            gains, memory = loop.gains, loop.memory
+            if gains.shape != (n, N_G) or memory.shape != (n, N_M):
+                raise ValueError(f"loop must have {n} rows")
+            if not (memory.flags.c_contiguous and memory.dtype == np.float64):
+                raise ValueError("loop memory must be a C-contiguous float64 array (it is updated in place)")
         arrays = []
         for name in _FIELDS:
             a = getattr(state, name)
             if not (isinstance(a, np.ndarray) and a.dtype == np.float64 and a.flags.c_contiguous):
                 a = np.ascontiguousarray(a, np.float64)
             arrays.append(a)
-        _physics_loop(int(n_steps), act, *arrays, packed, self._cprm, self._vprm, self.dt_s,
+        # (numba's stubs type the call by the kernel's parameters; mypy cannot count the arrays in *arrays)
+        _physics_loop(int(n_steps), act, *arrays, packed, self._cprm, self._vprm, self.dt_s,  # type: ignore[call-arg]
                       self._ctrl, self._mot, self._wind_sequence(int(n_steps)), self.ground_z_m,
-                      np.ascontiguousarray(rotor_scale, np.float64))
+                      np.ascontiguousarray(rotor_scale, np.float64), np.ascontiguousarray(acc_ext_ned_mps2, np.float64),
+                      np.ascontiguousarray(gains, np.float64), memory)
         for name, a in zip(_FIELDS, arrays):
             if a is not getattr(state, name):
                 getattr(state, name)[...] = a

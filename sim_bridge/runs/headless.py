@@ -4,9 +4,12 @@ The loop is: release due vehicles from the carrier -> deliver the neighbour
 states the transport has due -> one batched Agent.step for every vehicle (the
 same Agent the MAVLink companion runs for one vehicle, its loops compiled) ->
 the autopilot model turns agent setpoints into inner-loop setpoints (throw
-recovery, hold, offboard) -> publish states at the swarm rate -> injected rotor
-failures due -> record -> Physics.step for physics_rate/agent_rate steps with the
-setpoints held (the inner-loop geometric or PID controller runs at the physics rate).
+recovery, hold, offboard, what the autopilot does when an agent falls silent) ->
+publish states at the swarm rate -> injected rotor failures due -> record ->
+Physics.step for physics_rate/agent_rate steps with the setpoints held (the
+autopilot's position loops, with the gains of the autopilot the scenario names,
+`autopilot.name`, and the inner-loop geometric or PID controller run at the physics
+rate; each estimator's bias disturbs its vehicle there).
 
 `run_batch` flies several seeds of one scenario side by side: their vehicles are
 rows of the same Agent.step and autopilot-model call; everything else is per run.
@@ -17,28 +20,36 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
 
 import numpy as np
-from numba import njit
 from tqdm import tqdm
 
 from companion import frames
 from companion.agent import Agent, OwnState, Phase
 from companion.config import ConfigError
 from companion.control.geometric import pack_setpoint
+from companion.link.limits import SetpointLimits
 from companion.mission import Mission
+from companion.output import output_stage_for
 from companion.state import FleetSetpoint, FleetState
-from companion.swarm import SwarmView, receive_rows, swarm_due
-from sim_bridge.autopilot_model import hold_point, throw_recovered
-from sim_bridge.carrier import carrier_position_ned_m, release_times_s, sample_release_attitudes
-from sim_bridge.estimator import Estimator, to_true_frame
-from sim_bridge.faults import RotorFaults, resolve_rotor_failures
-from sim_bridge.jit import agent_kernels, compiled
-from sim_bridge.physics import Physics, hover_rotor_speed_radps
-from sim_bridge.record import MissionTracker, RunResult
-from sim_bridge.scenario import ScenarioConfig
-from sim_bridge.transport import NeighbourTransport, make_transport
+from companion.swarm import SwarmStates, SwarmView, receive_rows, swarm_due, tick_index
+from sim_bridge.reports.record import MissionTracker, RunResult
+from sim_bridge.runs.commands import ScheduledCommands
+from sim_bridge.scenario import ScenarioConfig, expected_end_s
+from sim_bridge.sitl.autopilots import UnknownAutopilotBehaviour, autopilot_named
+from sim_bridge.sitl.params_table import ParamTable
+from sim_bridge.world.autopilot_model import AutopilotModel, PositionController, hover_thrust_errors
+from sim_bridge.world.carrier import carrier_position_ned_m, release_times_s, sample_release_attitudes
+from sim_bridge.world.estimator import Estimator, bias_disturbance_ned_mps2, to_true_frame
+from sim_bridge.world.faults import RotorFaults, resolve_rotor_failures
+from sim_bridge.world.jit import agent_kernels, compiled, output_kernels
+from sim_bridge.world.physics import Physics, hover_rotor_speed_radps, hover_thrust_norm
+from sim_bridge.world.transport import NeighbourTransport, make_transport
+
+TICK_OBSERVERS: list[Callable[[float, SwarmStates | None], None]] = []
+"""Called every agent tick with (mission time, the states published then, or None) while
+registered: sim_bridge.runs.live streams a run to a console this way. Empty: no cost."""
 
 
 def release_into(state: FleetState, rows: np.ndarray, cfg: ScenarioConfig, t_s: float, rng: np.random.Generator) -> None:
@@ -51,89 +62,6 @@ def release_into(state: FleetState, rows: np.ndarray, cfg: ScenarioConfig, t_s: 
     state.omega_body_radps[rows] = omega
     state.rotor_speed_radps[rows] = hover_rotor_speed_radps(cfg.vehicle)
     state.ctrl_integral[rows] = 0.0
-
-
-AP_DOCKED, AP_THROW, AP_HOLD, AP_OFFBOARD = 0, 1, 2, 3
-
-
-@njit(cache=True)
-def _commanded(pos, vel, acc):
-    """(N,) bool: the row commands something, a finite position, velocity or acceleration
-    component (an all-NaN row is the agent sending nothing)."""
-    out = np.zeros(pos.shape[0], np.bool_)
-    for i in range(pos.shape[0]):
-        for a in range(3):
-            if pos[i, a] == pos[i, a] or vel[i, a] == vel[i, a] or acc[i, a] == acc[i, a]:
-                out[i] = True
-                break
-    return out
-
-
-@dataclass
-class AutopilotModel:
-    """The headless stand-in for each vehicle's autopilot, vectorised (N vehicles).
-
-    It does what the SITL's autopilot does on its own (sim_bridge.autopilot_model):
-    after a release it recovers the vehicle (zero velocity, heading held) until the
-    throw thresholds hold, then holds where it comes to rest, and flies the agent's
-    setpoints once the agent sends any (the agent sends nothing while it lets the
-    autopilot recover the vehicle). Its `ready` is what the agent is told.
-    """
-
-    mode: np.ndarray
-    hold_pos: np.ndarray
-    hold_yaw: np.ndarray
-    all_offboard: bool = False
-    """Every vehicle flew offboard after the last call (then a call that finds every
-    vehicle still commanded only returns the agent's setpoints)."""
-
-    @classmethod
-    def docked(cls, n: int) -> "AutopilotModel":
-        return cls(np.full(n, AP_DOCKED, dtype=np.int8), np.zeros((n, 3)), np.zeros(n))
-
-    @property
-    def ready(self) -> np.ndarray:
-        return self.mode >= AP_HOLD
-
-    def release(self, rows: np.ndarray, state: FleetState) -> None:
-        self.mode[rows] = AP_THROW
-        self.all_offboard = False
-        self.hold_yaw[rows] = frames.yaw_rad(state.rot_body_to_ned[rows])
-
-    def setpoint(self, state: FleetState, agent_sp: FleetSetpoint) -> FleetSetpoint:
-        """The inner-loop setpoint of every vehicle this tick (advances the mode machine).
-        When every vehicle flies offboard this is agent_sp itself, not a copy."""
-        commanded = _commanded(agent_sp.pos_ned_m, agent_sp.vel_ned_mps, agent_sp.acc_ned_mps2)
-        if self.all_offboard and commanded.all():
-            return agent_sp  # the usual case once the swarm flies
-        thr = self.mode == AP_THROW
-        if thr.any():
-            r = state.rot_body_to_ned[thr]
-            done = throw_recovered(r[:, 2, 2], np.linalg.norm(state.omega_body_radps[thr], axis=1),
-                                   np.linalg.norm(state.vel_ned_mps[thr], axis=1))
-            rows = np.flatnonzero(thr)[done]
-            self.mode[rows] = AP_HOLD
-            self.hold_pos[rows] = hold_point(state.pos_ned_m[rows], state.vel_ned_mps[rows])
-            self.hold_yaw[rows] = frames.yaw_rad(state.rot_body_to_ned[rows])
-        lost = (self.mode == AP_OFFBOARD) & ~commanded
-        if lost.any():
-            self.hold_pos[lost] = hold_point(state.pos_ned_m[lost], state.vel_ned_mps[lost])
-            self.hold_yaw[lost] = frames.yaw_rad(state.rot_body_to_ned[lost])
-            self.mode[lost] = AP_HOLD
-        self.mode[(self.mode == AP_HOLD) & commanded] = AP_OFFBOARD
-        off = self.mode == AP_OFFBOARD
-        self.all_offboard = bool(off.all())
-        if self.all_offboard:
-            return agent_sp
-        sp = FleetSetpoint.empty(len(self.mode))
-        sp.assign(off, agent_sp.select(off))
-        thr = self.mode == AP_THROW
-        sp.vel_ned_mps[thr] = 0.0
-        sp.yaw_rad[thr] = self.hold_yaw[thr]
-        hold = self.mode == AP_HOLD
-        sp.pos_ned_m[hold] = self.hold_pos[hold]
-        sp.yaw_rad[hold] = self.hold_yaw[hold]
-        return sp
 
 
 def run_scenario(cfg: ScenarioConfig, progress: bool = True, clock=None,
@@ -169,10 +97,19 @@ class _Run:
         self.estimator = Estimator(cfg.estimator, n, np.random.default_rng([cfg.seed, 0x455354])) \
             if cfg.estimator.active else None
         self.faults = RotorFaults(resolve_rotor_failures(cfg.faults, n, cfg.seed), n) if cfg.faults.active else None
+        self.bias_acc_ned_mps2 = bias_disturbance_ned_mps2(cfg.estimator, n, cfg.seed) \
+            if cfg.estimator.biased else None
+        """(n, 3) what each estimator's bias does to its vehicle (as the SITL), or None."""
+        self.loop: PositionController | None = None
+        """This run's rows of the autopilot model's position loops."""
         # Row views of the batch's arrays: what this run's parts write lands in the batch.
         self.state = FleetState(*(getattr(state, f)[rows] for f in FleetState.__dataclass_fields__))
-        self.view = SwarmView(*(getattr(view, f)[rows] for f in _VIEW_ARRAYS), receive_kernel=view.receive_kernel)
+        # (mypy cannot count the *args: they are the eight arrays of _VIEW_ARRAYS, receive_kernel the next field)
+        self.view = SwarmView(*(getattr(view, f)[rows] for f in _VIEW_ARRAYS),  # type: ignore[misc]
+                              receive_kernel=view.receive_kernel)
         self.tracker = MissionTracker(cfg, mission, log_every)
+        self.commands = ScheduledCommands(cfg, mission, rows) if cfg.commands else None
+        """The run's `commands:` schedule (issued, carried on the radio, recorded)."""
         self.released = released[rows]
         self.rel_s = release_times_s(cfg.carrier, n)
         self.next_release = min(self.rel_s) if n else math.inf  # (a float compare per tick)
@@ -222,8 +159,10 @@ def run_batch(cfgs: list[ScenarioConfig], progress: bool = False, clock=None,
     n, n_runs = mission.n, len(cfgs)
     ids = np.arange(n)
     agent = Agent(mission, np.tile(ids, n_runs), kernels=agent_kernels())
+    # The agent's output stage (companion.output): the same lines as `swarmdrop agent`'s tick.
+    output = output_stage_for(cfg.mission, n * n_runs, limits=SetpointLimits(), kernels=output_kernels())
     view = SwarmView.unknown(n * n_runs, n, receive_kernel=compiled(receive_rows))
-    autopilot = AutopilotModel.docked(n * n_runs)
+    autopilot = _autopilot_model(cfgs, n)
     dt_agent = 1.0 / cfg.agent.rate_hz
     sub_steps = int(round(cfg.physics.rate_hz / cfg.agent.rate_hz))
     log_every = int(round(cfg.agent.rate_hz / cfg.output.log_rate_hz))
@@ -231,12 +170,17 @@ def run_batch(cfgs: list[ScenarioConfig], progress: bool = False, clock=None,
     released = np.zeros(n * n_runs, dtype=bool)
     runs = [_Run(c, mission, slice(k * n, (k + 1) * n), state, view, released,
                  None if transports is None else transports[k], log_every) for k, c in enumerate(cfgs)]
+    for r in runs:
+        r.loop = autopilot.loop.view(r.rows)
     to_quat, q_own = compiled(frames.rot_to_quat_rows), np.empty((n * n_runs, 4))  # 1 us, numpy's twin 100 us
+    q_known = np.ones(n * n_runs, bool)  # (the simulated attitude is always known)
     estimated = runs[0].estimator is not None  # (the same estimator config in every run)
     p_obs, v_obs, r_obs = np.empty((n * n_runs, 3)), np.empty((n * n_runs, 3)), np.empty((n * n_runs, 3, 3))
     wall0 = clock()
     n_ticks = int(math.ceil(cfg.duration_s / dt_agent))
-    bar = tqdm(total=round(cfg.duration_s), unit="sim-s", disable=not progress, desc=cfg.name, mininterval=0.5)
+    # The bar runs to the mission's expected end (from the agreed transit start once there is one).
+    bar = tqdm(total=round(expected_end_s(cfg)), unit="sim-s", disable=not progress, desc=cfg.name, mininterval=0.5)
+    bar_go = math.nan
     # Who publishes at tick k depends on k modulo the ticks per swarm period only: one
     # mask per offset, from swarm_due itself.
     period_us = round(dt_agent * 1e6)
@@ -259,6 +203,8 @@ def run_batch(cfgs: list[ScenarioConfig], progress: bool = False, clock=None,
                 r.state.pos_ned_m[docked] = carrier_position_ned_m(r.cfg.carrier, t)
                 r.state.vel_ned_mps[docked] = r.cfg.carrier.vel_ned_mps
             r.transport.deliver(t, r.view)
+            if r.commands is not None:  # the schedule's plans on the radio, into the agents' books
+                r.commands.step(t, agent.plans, r.state.pos_ned_m, agent.t_go_s[r.rows])
             if r.estimator is not None:  # what the autopilot's estimator would report (as the SITL does)
                 p_obs[r.rows], v_obs[r.rows], r_obs[r.rows] = r.estimator.observe(
                     t, r.state.pos_ned_m, r.state.vel_ned_mps, r.state.rot_body_to_ned)
@@ -270,11 +216,16 @@ def run_batch(cfgs: list[ScenarioConfig], progress: bool = False, clock=None,
             own = OwnState(state.pos_ned_m, state.vel_ned_mps, q_own, np.full(n * n_runs, t), released,
                            autopilot.ready)
         out = agent.step(t, own, view)
-        offset = ((round(t * 1e6) + period_us // 2) // period_us) % n_offsets
+        offset = tick_index(round(t * 1e6), period_us) % n_offsets
         per_run = int(publish_at[offset].sum())
         published = out.published.select(publish_all[offset]) if per_run else None
-        sp = autopilot.setpoint(state, out.setpoint)
-        if estimated:  # the autopilot flies on its estimate (sim_bridge/estimator.py)
+        for observe in TICK_OBSERVERS:
+            observe(t, published)
+        output.set_plan(t, out.setpoint, q_known)
+        output.step(t, own.pos_ned_m, own.vel_ned_mps, own.att_q_wxyz)
+        sp = autopilot.setpoint(state, output.setpoint, t)
+        autopilot.detect_landing(t, state)
+        if estimated:  # the autopilot flies on its estimate (sim_bridge/world/estimator.py)
             for r in live:
                 if r.estimator is not None:
                     sp.pos_ned_m[r.rows] = to_true_frame(sp.pos_ned_m[r.rows], r.estimator.offset_ned_m)
@@ -287,23 +238,68 @@ def run_batch(cfgs: list[ScenarioConfig], progress: bool = False, clock=None,
                 r.faults.update(t)
             sp_r = FleetSetpoint(*(getattr(sp, f)[r.rows] for f in FleetSetpoint.__dataclass_fields__))
             done = r.tracker.update(t, r.state, sp_r, r.released, out.phase[r.rows], out.assembled[r.rows],
-                                    out.t_go_s[r.rows], failed_at_s=None if r.faults is None else r.faults.failed_at_s)
+                                    out.t_go_s[r.rows], failed_at_s=None if r.faults is None else r.faults.failed_at_s,
+                                    down=autopilot.disarmed[r.rows],
+                                    slot_ned_m=None if r.commands is None else out.slot_ned_m[r.rows])
+            if r.commands is not None:
+                done = done and r.commands.done  # (a schedule runs to its end)
             if done or k == n_ticks:
                 r.result = r.tracker.result(r.rel_s, carrier_position_ned_m(r.cfg.carrier, r.rel_s),
-                                            (clock() - wall0) / n_runs, t, r.vehicle_steps, r.transport.stats())
+                                            (clock() - wall0) / n_runs, t, r.vehicle_steps, r.transport.stats(),
+                                            None if r.commands is None else r.commands.records)
                 live.remove(r)
                 continue
-            r.physics.step(r.state, packed[r.rows], n_steps=sub_steps, active=r.released,
-                           rotor_scale=None if r.faults is None else r.faults.scale)
+            r.physics.step(r.state, packed[r.rows], n_steps=sub_steps, active=r.released & ~autopilot.disarmed[r.rows],
+                           rotor_scale=None if r.faults is None else r.faults.scale,
+                           acc_ext_ned_mps2=r.bias_acc_ned_mps2, loop=r.loop)
             r.vehicle_steps += sub_steps * r.n_released
         if not live:
             break
         if int(t + dt_agent) != int(t):
+            if progress and math.isnan(bar_go):
+                go = out.t_go_s[:n]
+                if not np.isnan(go).all():
+                    bar_go = float(np.nanmin(go))
+                    bar.total = round(expected_end_s(cfg, bar_go))
+            bar.total = max(bar.total, bar.n + 1)  # (a mission that runs late)
             bar.update(1)
             bar.set_postfix_str(_phase_summary(out.phase))
     bar.total = bar.n  # finished early (mission complete): close the bar at 100 %
     bar.close()
-    return [r.result for r in runs]
+    results = []
+    for r in runs:
+        assert r.result is not None  # (every run gets its result by the last tick, k == n_ticks)
+        results.append(r.result)
+    return results
+
+
+def _autopilot_model(cfgs: list[ScenarioConfig], n: int) -> AutopilotModel:
+    """The stand-in for the autopilot the scenarios name (autopilot.name): its SITL
+    behaviour's default parameter table gives the position loops' gains and the loss
+    behaviour; each vehicle's hover-thrust parameter is off by its run's draw.
+
+    Raises:
+        ConfigError: no SITL behaviour has that name (its gains and parameters are unknown).
+    """
+    cfg = cfgs[0]
+    try:
+        behaviour = autopilot_named(cfg.autopilot.name)
+    except UnknownAutopilotBehaviour as e:
+        raise ConfigError(f"{cfg.name}: autopilot.name: {e}") from None
+    hover = hover_thrust_norm(cfg.vehicle)
+    model = AutopilotModel.docked(n * len(cfgs), cfg.physics.ground_z_m)
+    model.upright_first = behaviour.throw_uprights_first
+    loss = None
+    for r, c in enumerate(cfgs):
+        errors = hover_thrust_errors(c.autopilot.hover_thrust_error, n, c.seed)
+        for k in range(n):
+            table = ParamTable(behaviour.param_specs(c.inner_loop, k + 1, min(0.95, hover * (1.0 + errors[k]))),
+                               behaviour.dialect.param_encoding)
+            model.loop.set_gains(r * n + k, behaviour.position_loop(table, hover))
+            loss = loss or behaviour.loss_behaviour(table)
+    if loss is not None:
+        model.loss = loss
+    return model
 
 
 def _phase_summary(phase: np.ndarray) -> str:

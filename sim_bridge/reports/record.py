@@ -23,11 +23,12 @@ from companion import frames
 from companion.agent import Phase
 from companion.mission import Mission
 from companion.state import FleetSetpoint, FleetState
-from sim_bridge.jit import compiled
-from sim_bridge.results import LinkStats
-from sim_bridge.scenario import ScenarioConfig
+from sim_bridge.scenario import ScenarioConfig, ends_landed
+from sim_bridge.world.jit import compiled
+from sim_bridge.world.transport import LinkStats
 
 _HOVER = int(Phase.HOVER)
+_LAND = int(Phase.LAND)
 _rot_to_quat = compiled(frames.rot_to_quat_rows)
 
 
@@ -36,7 +37,7 @@ class SafetyTracker:
     """Running minima of separation and obstacle clearance, sampled every agent tick.
 
     Pairs of healthy vehicles are judged against separation_m and collision_m; a vehicle
-    whose rotor has failed (sim_bridge.faults) is tracked apart: how close it came to a
+    whose rotor has failed (sim_bridge.world.faults) is tracked apart: how close it came to a
     healthy one, and which healthy ones it touched (within collision_m).
     """
 
@@ -60,6 +61,7 @@ class SafetyTracker:
                healthy: np.ndarray | None = None) -> None:
         """ids: (k,) vehicle ids of the airborne vehicles, pos: (k, 3) their positions,
         healthy: (k,) bool, no rotor failed (default all)."""
+        k: int | np.signedinteger  # (a pair index from np.flatnonzero, then the row closest to an obstacle)
         if healthy is not None and not healthy.all():
             bad = ~healthy
             if healthy.any():
@@ -162,10 +164,12 @@ class Recorder:
     phase: list = field(default_factory=list)
     counted: list = field(default_factory=list)
     """Per sample and vehicle: its agent was alive (the fleet leaves out crashed companions)."""
+    down: list = field(default_factory=list)
+    """Per sample and vehicle: landed and disarmed (recorded only for a mission that lands)."""
     _all_counted: np.ndarray = field(default_factory=lambda: np.ones(0, bool), repr=False)
 
     def add(self, t_s: float, st: FleetState, sp: FleetSetpoint, slot: np.ndarray, phase: np.ndarray,
-            counted: np.ndarray | None = None) -> None:
+            counted: np.ndarray | None = None, down: np.ndarray | None = None) -> None:
         self.t_s.append(t_s)
         self.pos_ned_m.append(st.pos_ned_m.astype(np.float32))
         self.vel_ned_mps.append(st.vel_ned_mps.astype(np.float32))
@@ -180,9 +184,12 @@ class Recorder:
                 self._all_counted = np.ones(len(phase), bool)
             counted = self._all_counted
         self.counted.append(np.asarray(counted, bool))
+        if down is not None:
+            self.down.append(np.array(down, bool))
 
     def arrays(self) -> dict[str, np.ndarray]:
-        out = {k: np.asarray(v) for k, v in self.__dict__.items() if k not in ("rot_body_to_ned", "_all_counted")}
+        out = {k: np.asarray(v) for k, v in self.__dict__.items()
+               if k not in ("rot_body_to_ned", "_all_counted") and not (k == "down" and not v)}
         rot = np.asarray(self.rot_body_to_ned).reshape(-1, 3, 3)
         q = np.empty((len(rot), 4))
         _rot_to_quat(rot, q)  # the compiled twin of frames.rot_to_quat_wxyz
@@ -191,7 +198,48 @@ class Recorder:
 
 
 @dataclass
+class CommandRecord:
+    """One swarm command of a run (its `commands:` schedule, or an operator's): what the source
+    made of it and when each vehicle had it.
+
+    Attributes:
+        seq: the plan's seq (0: the source refused the command; `refused` says why).
+        kind: the command (hold, resume, goto, formation, exclude, rejoin, land, rtl, abort).
+        issued_s: mission time it was issued, s. effective_s: when every agent applies it, s.
+        refused: the source's reason, or "".
+        held_s: (N,) when each vehicle first held the whole plan (or a newer one), s (NaN: never).
+        applied_s: (N,) when each vehicle's agent flew it (or a newer one) first, s (NaN: never).
+    """
+
+    seq: int
+    kind: str
+    issued_s: float
+    effective_s: float
+    refused: str
+    held_s: np.ndarray
+    applied_s: np.ndarray
+
+    def to_json(self) -> dict:
+        return {"seq": self.seq, "kind": self.kind, "issued_s": self.issued_s, "effective_s": self.effective_s,
+                "refused": self.refused, "held_s": self.held_s.tolist(), "applied_s": self.applied_s.tolist()}
+
+    @classmethod
+    def from_json(cls, d: dict) -> "CommandRecord":
+        def arr(x):
+            return np.array([np.nan if v is None else v for v in x], float)
+
+        return cls(int(d["seq"]), d["kind"], float(d["issued_s"]),
+                   math.nan if d["effective_s"] is None else float(d["effective_s"]), d["refused"],
+                   arr(d["held_s"]), arr(d["applied_s"]))
+
+
+@dataclass
 class RunResult:
+    """Everything one run recorded (MissionTracker.result), what metrics, figures and
+    run.json are made from: the log arrays (T, N, ...) at output.log_rate_hz, times in s
+    of simulated time (NaN: never happened), positions in the mission frame (NED, m), and
+    the run's wall and simulated duration (s). save_run / load_run carry it across processes."""
+
     cfg: ScenarioConfig
     mission: Mission
     log: dict[str, np.ndarray]
@@ -211,6 +259,11 @@ class RunResult:
     """Neighbour-transport statistics (NeighbourTransport.stats or the SITL's radio medium)."""
     failed_at_s: np.ndarray = field(default_factory=lambda: np.zeros(0))
     """(N,) mission time of each vehicle's injected rotor failure (NaN: healthy)."""
+    t_land_start_s: float = math.nan
+    """A mission that lands: when the first counted vehicle began to land (the end of the
+    hover, where the formation is judged); NaN otherwise."""
+    commands: list[CommandRecord] = field(default_factory=list)
+    """The swarm commands of the run, in the order issued (empty without a schedule)."""
 
 
 
@@ -234,6 +287,9 @@ class MissionTracker:
         self.phase_entry[:, Phase.LAUNCH] = 0.0
         self.t_all_assembled = math.nan
         self.t_complete = math.nan
+        self.landing = ends_landed(cfg)
+        """The mission ends in a landing: it is complete when every counted vehicle is down."""
+        self.t_land_start = math.nan
         self.t_go_s = math.nan
         self.t_go_spread_s = math.nan
         self.updates = 0
@@ -242,13 +298,21 @@ class MissionTracker:
 
     def update(self, t_s: float, state: FleetState, inner_sp: FleetSetpoint, released: np.ndarray,
                phase: np.ndarray, assembled: np.ndarray, t_go_s: np.ndarray,
-               counted: np.ndarray | None = None, failed_at_s: np.ndarray | None = None) -> bool:
+               counted: np.ndarray | None = None, failed_at_s: np.ndarray | None = None,
+               down: np.ndarray | None = None, slot_ned_m: np.ndarray | None = None) -> bool:
         """One sample; returns True once the mission has been complete for completion_hold_s.
+
+        A mission that hovers is complete when every counted vehicle hovers within
+        completion_tol_m of its slot. A mission that lands (land_after_hover_s) is complete
+        when every counted vehicle has landed and disarmed (down: (N,) bool, from the
+        autopilots); its formation is judged at the end of the hover (metrics).
 
         counted: (N,) bool, the vehicles completion is judged on (default all); a fleet
         run leaves out vehicles whose agent has died (their autopilot holds and lands).
         failed_at_s: (N,) time of each vehicle's injected rotor failure (NaN healthy):
         a failed vehicle leaves completion and the healthy-pair safety figures from then.
+        slot_ned_m: (N, 3) each vehicle's reference now, where swarm commands change it (the
+        plan's: formation changes, parking); default the mission's own slots.
         """
         healthy = None
         if failed_at_s is not None:
@@ -276,25 +340,36 @@ class MissionTracker:
             self.safety.update(t_s, airborne, state.pos_ned_m[airborne], m,
                                None if healthy is None else healthy[airborne])
         log = self.updates % self.log_every == 0
-        judge = math.isnan(self.t_complete) and bool((self.phase[c] == _HOVER).all())
+        judge = False
+        if self.landing:
+            landing = self.phase[c] == _LAND
+            if math.isnan(self.t_land_start) and landing.any():
+                self.t_land_start = t_s
+            if math.isnan(self.t_complete) and down is not None and landing.all() and np.all(down[c]):
+                self.t_complete = t_s
+        else:
+            judge = math.isnan(self.t_complete) and bool((self.phase[c] == _HOVER).all())
         if log or judge:  # the slots are only needed for these
-            tau = m.tau_s(t_s, self.t_go_s)
-            if tau != self._slot_tau:  # (unchanged while the transit start is not agreed)
-                self._slot, self._slot_tau = m.slot_ned_m(tau), tau
-            slot = self._slot
+            if slot_ned_m is not None:
+                slot = slot_ned_m
+            else:
+                tau = m.tau_s(t_s, self.t_go_s)
+                if tau != self._slot_tau:  # (unchanged while the transit start is not agreed)
+                    self._slot, self._slot_tau = m.slot_ned_m(tau), tau
+                slot = self._slot
             if log:
-                self.rec.add(t_s, state, inner_sp, slot, self.phase, counted)
+                self.rec.add(t_s, state, inner_sp, slot, self.phase, counted, down if self.landing else None)
             if judge and np.linalg.norm(state.pos_ned_m[c] - slot[c], axis=1).max() < self.cfg.completion_tol_m:
                 self.t_complete = t_s
         self.updates += 1
         return not math.isnan(self.t_complete) and t_s >= self.t_complete + self.cfg.completion_hold_s
 
     def result(self, release_s: np.ndarray, release_pos_ned_m: np.ndarray, wall_s: float, sim_s: float,
-               vehicle_steps: int, link: LinkStats) -> "RunResult":
+               vehicle_steps: int, link: LinkStats, commands: list[CommandRecord] | None = None) -> "RunResult":
         return RunResult(self.cfg, self.mission, self.rec.arrays(), np.asarray(release_s, float),
                          np.asarray(release_pos_ned_m, float), self.phase_entry, self.safety, self.t_go_s,
                          self.t_go_spread_s, self.t_all_assembled, self.t_complete, wall_s, sim_s, vehicle_steps,
-                         link, self.failed_at_s.copy())
+                         link, self.failed_at_s.copy(), self.t_land_start, list(commands or []))
 
 
 def save_log(result: RunResult, out_dir: Path) -> Path:
@@ -302,34 +377,61 @@ def save_log(result: RunResult, out_dir: Path) -> Path:
     path = out_dir / "telemetry.npz"
     np.savez_compressed(
         path, release_s=result.release_s, release_pos_ned_m=result.release_pos_ned_m,
-        phase_entry_s=result.phase_entry_s, offsets_ned_m=result.mission.offsets_ned_m, **result.log,
+        # (numpy's stub: mypy cannot rule out that **log holds the bool allow_pickle; its keys are array names)
+        phase_entry_s=result.phase_entry_s, offsets_ned_m=result.mission.offsets_ned_m, **result.log,  # type: ignore[arg-type]
     )
     return path
 
 
-_SCALARS = ("t_go_s", "t_go_spread_s", "t_all_assembled_s", "t_complete_s", "wall_s", "sim_s", "vehicle_steps")
+_SCALARS = ("t_go_s", "t_go_spread_s", "t_all_assembled_s", "t_complete_s", "wall_s", "sim_s", "vehicle_steps",
+            "t_land_start_s")
 
 
 def save_run(result: RunResult, out_dir: Path) -> None:
-    """telemetry.npz plus run.json: enough for load_run in another process."""
+    """telemetry.npz plus run.json: enough for load_run in another process. run.json is strict
+    JSON: a number that is NaN or infinite (not measured, nothing happened) is written as null,
+    and load_run restores it."""
+
+    def strict(value):  # every non-finite float as None (no bare NaN or Infinity in the file)
+        if isinstance(value, float):
+            return value if math.isfinite(value) else None
+        if isinstance(value, dict):
+            return {k: strict(v) for k, v in value.items()}
+        if isinstance(value, (list, tuple)):
+            return [strict(v) for v in value]
+        return value
+
     save_log(result, out_dir)
     s = result.safety
     info = {name: getattr(result, name) for name in _SCALARS}
     info["link"] = dataclasses.asdict(result.link)
     info["safety"] = s.to_json()
-    info["failed_at_s"] = [None if math.isnan(x) else x for x in result.failed_at_s.tolist()]
-    (out_dir / "run.json").write_text(json.dumps(info, indent=1, allow_nan=True))
+    info["failed_at_s"] = result.failed_at_s.tolist()
+    info["commands"] = [c.to_json() for c in result.commands]
+    (out_dir / "run.json").write_text(json.dumps(strict(info), indent=1, allow_nan=False))
 
 
 def load_run(out_dir: Path, cfg: ScenarioConfig) -> RunResult:
-    """The RunResult save_run wrote (cfg: the same scenario)."""
+    """The RunResult save_run wrote (cfg: the same scenario). A null number is what save_run
+    wrote for a NaN, or for the infinity a SafetyTracker minimum starts at (nothing measured).
+    Also reads the run.json of older versions, which wrote bare NaN and Infinity."""
+
+    def num(value, missing: float = math.nan) -> float:
+        return missing if value is None else value
+
     info = json.loads((out_dir / "run.json").read_text())
     data = dict(np.load(out_dir / "telemetry.npz"))
-    safety = SafetyTracker.from_json(info["safety"])
+    sf = dict(info["safety"])
+    unbounded = ("min_pair_dist_m", "min_clearance_m", "min_failed_dist_m")  # start at inf, the rest at NaN
+    for key in ("min_pair_time_s", "min_clearance_time_s", *unbounded):
+        sf[key] = num(sf.get(key), math.inf if key in unbounded else math.nan)
+    safety = SafetyTracker.from_json(sf)
     failed_at = np.array([np.nan if x is None else x for x in info["failed_at_s"]], float)
     extra = ("release_s", "release_pos_ned_m", "phase_entry_s", "offsets_ned_m")
     log = {k: v for k, v in data.items() if k not in extra}
+    scalar = {name: num(info.get(name)) for name in _SCALARS if name != "vehicle_steps"}
     return RunResult(cfg, Mission(cfg.mission), log, data["release_s"], data["release_pos_ned_m"],
-                     data["phase_entry_s"], safety, info["t_go_s"], info["t_go_spread_s"], info["t_all_assembled_s"],
-                     info["t_complete_s"], info["wall_s"], info["sim_s"], info["vehicle_steps"], LinkStats.from_json(info["link"]),
-                     failed_at)
+                     data["phase_entry_s"], safety, scalar["t_go_s"], scalar["t_go_spread_s"],
+                     scalar["t_all_assembled_s"], scalar["t_complete_s"], scalar["wall_s"], scalar["sim_s"],
+                     info["vehicle_steps"], LinkStats.from_json(info["link"]), failed_at, scalar["t_land_start_s"],
+                     [CommandRecord.from_json(c) for c in info.get("commands", [])])

@@ -5,6 +5,7 @@ Plots show "up" (= -z NED) on the vertical axis, as the paper does.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 
 import matplotlib
@@ -15,8 +16,8 @@ import numpy as np  # noqa: E402
 
 from companion import frames  # noqa: E402
 from companion.agent import Phase  # noqa: E402
-from sim_bridge.metrics import formation_deviation  # noqa: E402
-from sim_bridge.record import RunResult  # noqa: E402
+from sim_bridge.reports.metrics import formation_deviation  # noqa: E402
+from sim_bridge.reports.record import RunResult  # noqa: E402
 
 
 def _sphere(ax, centre_ned, radius, color="hotpink", alpha=0.35):
@@ -89,7 +90,7 @@ def fig_trajectories(result: RunResult, out: Path) -> Path:
     return p
 
 
-def fig_attitude_recovery(result: RunResult, vehicles: tuple[int, ...], out: Path, window_s: float = 4.0) -> Path:
+def fig_attitude_recovery(result: RunResult, vehicles: Sequence[int], out: Path, window_s: float = 4.0) -> Path:
     """Fig. 6: roll/pitch/yaw after release for the chosen (1-based) vehicles."""
     t = result.log["t_s"]
     eul = np.degrees(frames.rot_to_euler_zyx(frames.quat_wxyz_to_rot(result.log["att_q_wxyz"].astype(float))))

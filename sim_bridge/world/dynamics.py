@@ -17,7 +17,9 @@ Integrator (per step of length h, wrench held constant over the step):
       h/2 (W0 + W1) + h^2/12 (Wdot0 - Wdot1) + h^2/12 W0 x W1 (Hermite-Simpson), so R
       stays on SO(3) to round-off and R J Omega is conserved to O(h^4) when M = 0;
     * translation: thrust direction averaged over the step (trapezoid), linear drag
-      implicit, position by the trapezoid rule (exact for constant acceleration).
+      implicit, an external acceleration per vehicle (what an estimator's bias does to the
+      vehicle its autopilot flies: sim_bridge/world/estimator.py) added to gravity,
+      position by the trapezoid rule (exact for constant acceleration).
 """
 from __future__ import annotations
 
@@ -29,7 +31,7 @@ from numba import njit
 from companion.control import so3
 from companion.params import GRAVITY_MPS2, VehicleParams
 from companion.state import FleetState
-from sim_bridge.jit import compiled
+from sim_bridge.world.jit import compiled
 
 # The SO(3) kernels, compiled (companion.control.kernel): called from the njit cores below.
 add, cross, exp_so3, load_mat, matmul, mul, scale, store_mat = (
@@ -148,9 +150,10 @@ def _omega_dot(w, m, j):
 
 
 @njit(cache=True)
-def rigid_body_step(pos, vel, rot, om, q, q_cmd, vp, dt, mot, wind, ground_z):
+def rigid_body_step(pos, vel, rot, om, q, q_cmd, vp, dt, mot, wind, ground_z, acc_ext):
     """One vehicle, one step of length dt. mot = (alpha, c1, c2) from motor_coeffs;
-    wind NED 3-tuple (m/s); ground_z = +inf for no ground. Returns (pos, vel, rot, om, q)."""
+    wind NED 3-tuple (m/s); ground_z = +inf for no ground; acc_ext NED 3-tuple (m/s^2), an
+    external acceleration acting beside gravity and drag. Returns (pos, vel, rot, om, q)."""
     kf = vp[VP_KF]
     qmin, qmax = vp[VP_QMIN], vp[VP_QMAX]
     alpha, c1, c2 = mot
@@ -185,15 +188,15 @@ def rigid_body_step(pos, vel, rot, om, q, q_cmd, vp, dt, mot, wind, ground_z):
     b3x, b3y, b3z = 0.5 * (rot[2] + rot1[2]), 0.5 * (rot[5] + rot1[5]), 0.5 * (rot[8] + rot1[8])
     kd = cd / mass
     den = 1.0 + kd * h
-    v1 = ((vel[0] + h * (-fm * b3x + kd * wind[0])) / den,
-          (vel[1] + h * (-fm * b3y + kd * wind[1])) / den,
-          (vel[2] + h * (g - fm * b3z + kd * wind[2])) / den)
+    v1 = ((vel[0] + h * (-fm * b3x + kd * wind[0] + acc_ext[0])) / den,
+          (vel[1] + h * (-fm * b3y + kd * wind[1] + acc_ext[1])) / den,
+          (vel[2] + h * (g - fm * b3z + kd * wind[2] + acc_ext[2])) / den)
     p1 = (pos[0] + 0.5 * h * (vel[0] + v1[0]), pos[1] + 0.5 * h * (vel[1] + v1[1]),
           pos[2] + 0.5 * h * (vel[2] + v1[2]))
     q1 = (n1, n2, n3, n4)
     if p1[2] >= ground_z:  # ground contact (NED: down is +z)
         p1 = (p1[0], p1[1], ground_z)
-        if f * rot1[8] < mass * g:  # not enough upward thrust to lift off: rest, levelled to yaw
+        if f * rot1[8] < mass * (g + acc_ext[2]):  # not enough upward thrust to lift off: rest, levelled to yaw
             yaw = math.atan2(rot1[3], rot1[0])
             cy, sy = math.cos(yaw), math.sin(yaw)
             return p1, (0.0, 0.0, 0.0), (cy, -sy, 0.0, sy, cy, 0.0, 0.0, 0.0, 1.0), (0.0, 0.0, 0.0), q1
@@ -212,7 +215,7 @@ def _open_loop(pos, vel, rot, om, rotor, q_cmd, vp, dt, mot, wind, ground_z, n_s
         qc = (q_cmd[i, 0], q_cmd[i, 1], q_cmd[i, 2], q_cmd[i, 3])
         wd = (wind[0], wind[1], wind[2])
         for _ in range(n_steps):
-            p, v, r, w, q = rigid_body_step(p, v, r, w, q, qc, vp, dt, mot, wd, ground_z)
+            p, v, r, w, q = rigid_body_step(p, v, r, w, q, qc, vp, dt, mot, wd, ground_z, (0.0, 0.0, 0.0))
         pos[i, 0], pos[i, 1], pos[i, 2] = p
         vel[i, 0], vel[i, 1], vel[i, 2] = v
         store_mat(rot, i, r)
@@ -270,7 +273,8 @@ def step_open_loop(state: FleetState, rotor_cmd_radps: np.ndarray, vp: VehiclePa
     arrays = [np.ascontiguousarray(getattr(state, k), float) for k in
               ("pos_ned_m", "vel_ned_mps", "rot_body_to_ned", "omega_body_radps", "rotor_speed_radps")]
     gz = math.inf if ground_z_m is None else float(ground_z_m)
-    _open_loop(*arrays, cmd, pack_vehicle_params(vp), float(dt_s), motor_coeffs(vp.motor_time_constant_s, dt_s),
+    # (numba's stubs type the call by the kernel's parameters; mypy cannot count the five arrays in *arrays)
+    _open_loop(*arrays, cmd, pack_vehicle_params(vp), float(dt_s), motor_coeffs(vp.motor_time_constant_s, dt_s),  # type: ignore[call-arg]
                np.asarray(wind_ned_mps, float), gz, int(n_steps))
     for k, a in zip(("pos_ned_m", "vel_ned_mps", "rot_body_to_ned", "omega_body_radps", "rotor_speed_radps"), arrays):
         getattr(state, k)[...] = a

@@ -41,6 +41,15 @@ class AttitudeDistribution:
 
 @dataclass(config=STRICT)
 class CarrierConfig:
+    """The carrier aircraft (module docstring): its straight track (NED m, m/s at t = 0),
+    when it releases (first_release_s, then every release_interval_s, s; or "command": a
+    vehicle goes on MAV_CMD 31010 in the SITL) and the release attitudes.
+
+    Raises:
+        pydantic.ValidationError: first_release_s < 0, release_interval_s not > 0, or an
+            unknown release kind.
+    """
+
     start_ned_m: tuple[float, float, float] = (0.0, 0.0, -30.0)
     vel_ned_mps: tuple[float, float, float] = (5.0, 0.0, 0.0)
     first_release_s: float = Field(default=0.0, ge=0)

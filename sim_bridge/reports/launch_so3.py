@@ -11,15 +11,16 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from companion.state import FleetSetpoint, FleetState
-from sim_bridge.physics import Physics, hover_rotor_speed_radps
 from sim_bridge.scenario import ScenarioConfig
+from sim_bridge.world.physics import Physics, hover_rotor_speed_radps
 
-CONTROLLERS = ("geometric", "pid")
+CONTROLLERS: tuple[Literal["geometric", "pid"], ...] = ("geometric", "pid")
 PERCENTILES = (50, 95)
 
 
@@ -65,7 +66,7 @@ class BatchOutcome:
         return v if np.isfinite(v) else None
 
 
-def fly_batch(cfg: ScenarioConfig, controller: str, draws: ReleaseDraws) -> BatchOutcome:
+def fly_batch(cfg: ScenarioConfig, controller: Literal["geometric", "pid"], draws: ReleaseDraws) -> BatchOutcome:
     """Release every draw and fly the STABILISE setpoint for launch_study.duration_s."""
     study = cfg.launch_study
     inner = dataclasses.replace(cfg.inner_loop, controller=controller)

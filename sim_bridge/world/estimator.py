@@ -20,6 +20,16 @@ is. The simulators keep the inner loop on the true state and emulate this by shi
 position setpoints by `offset_ned_m` (estimate minus truth), which is exact for a
 controller linear in the position error. Without it a slowly wandering GPS error would
 make every vehicle chase its own error and walk away.
+
+A real estimator also carries an accelerometer bias and a tilt error (PX4 SIH: 0.2-0.4 m/s^2
+of accelerometer bias, about 2 deg of tilt error; ../shared/notes/mavlink-facts.md). What
+that does to a flying vehicle is modelled as a constant acceleration disturbance per
+vehicle acting on the true physics (the autopilot commands a, the vehicle realises a + d;
+`bias_disturbance_ned_mps2`, handed to Physics.step as its external acceleration):
+horizontally g tan(tilt error) in the direction of the tilt error, vertically the
+accelerometer bias. Each vehicle's draw comes from the seed's own stream, so the SITL and
+the headless runner disturb vehicle k alike. Without integral action somewhere (the
+autopilot's velocity integrators, the agent's) it leaves a steady position offset.
 """
 from __future__ import annotations
 
@@ -32,10 +42,22 @@ from pydantic.dataclasses import dataclass
 
 from companion.config import STRICT
 from companion.control.so3 import exp_so3_np
+from companion.params import GRAVITY_MPS2
 
 
 @dataclass(config=STRICT)
 class EstimatorConfig:
+    """The estimator's error model (module docstring): position noise (std m, correlation
+    time s), velocity noise (m/s), attitude noise (rad) and latency (s), and the bias a
+    flying vehicle feels (tilt error, deg; accelerometer bias, m/s^2). All zero (the
+    default): the agents see the true state (`active` is False) and nothing is disturbed
+    (`biased` is False).
+
+    Raises:
+        pydantic.ValidationError: a negative std, pos_noise_tau_s not > 0, latency_s
+            outside [0, 2], or a tilt error std of 30 deg or more.
+    """
+
     pos_noise_std_m: float = Field(default=0.0, ge=0)
     """Horizontal position error, stationary std per axis."""
     pos_noise_std_vertical_m: float = Field(default=0.0, ge=0)
@@ -44,11 +66,44 @@ class EstimatorConfig:
     vel_noise_std_mps: float = Field(default=0.0, ge=0)
     att_noise_std_rad: float = Field(default=0.0, ge=0)
     latency_s: float = Field(default=0.0, ge=0, le=2.0)
+    tilt_error_std_deg: float = Field(default=0.0, ge=0, lt=30.0)
+    """Tilt error of each vehicle's estimator, std per horizontal axis (deg): a horizontal
+    disturbance of g tan(tilt error) towards the tilt (PX4 SIH: about 2 deg)."""
+    accel_bias_std_mps2: float = Field(default=0.0, ge=0)
+    """Vertical accelerometer bias of each vehicle's estimator, std (m/s^2): a vertical
+    disturbance of that size (PX4 SIH: 0.2-0.4 m/s^2)."""
+
+    @property
+    def biased(self) -> bool:
+        """Some vehicle is disturbed by its estimator's bias (bias_disturbance_ned_mps2)."""
+        return self.tilt_error_std_deg > 0 or self.accel_bias_std_mps2 > 0
 
     @property
     def active(self) -> bool:
         return any(v > 0 for v in (self.pos_noise_std_m, self.pos_noise_std_vertical_m, self.vel_noise_std_mps,
                                    self.att_noise_std_rad, self.latency_s))
+
+
+_BIAS_STREAM = 0x42494153  # "BIAS": the per-vehicle bias draws, apart from every other stream
+
+
+def bias_disturbance_ned_mps2(cfg: EstimatorConfig, n: int, seed: int) -> np.ndarray:
+    """(n, 3) constant acceleration disturbance of each vehicle from its estimator's bias
+    (module docstring), NED m/s^2: the tilt error is drawn per horizontal axis (std
+    tilt_error_std_deg, so its direction is uniform) and gives g tan(|tilt|) along it; the
+    vertical part is the accelerometer bias (std accel_bias_std_mps2). From the seed's own
+    stream; all zero without a bias (nothing drawn)."""
+    out = np.zeros((n, 3))
+    if not cfg.biased or n == 0:
+        return out
+    z = np.random.default_rng([seed, _BIAS_STREAM]).standard_normal((n, 3))  # (row k: vehicle k's, whatever n)
+    tilt = np.radians(cfg.tilt_error_std_deg * z[:, :2])
+    bias = cfg.accel_bias_std_mps2 * z[:, 2]
+    mag = np.hypot(tilt[:, 0], tilt[:, 1])
+    scale = np.where(mag > 0, GRAVITY_MPS2 * np.tan(mag) / np.maximum(mag, 1e-300), 0.0)
+    out[:, :2] = tilt * scale[:, None]
+    out[:, 2] = bias
+    return out
 
 
 class Estimator:

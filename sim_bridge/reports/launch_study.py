@@ -10,14 +10,15 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 
 from companion import frames
 from companion.params import InnerLoopConfig
 from companion.state import FleetSetpoint, FleetState
-from sim_bridge.physics import Physics, hover_rotor_speed_radps
 from sim_bridge.scenario import LaunchStudyConfig, ScenarioConfig
+from sim_bridge.world.physics import Physics, hover_rotor_speed_radps
 
 
 @dataclass
@@ -33,7 +34,7 @@ class LaunchTrace:
     tilt_rad: np.ndarray
 
 
-def fly_launch(cfg: ScenarioConfig, controller: str, roll_deg: float) -> LaunchTrace:
+def fly_launch(cfg: ScenarioConfig, controller: Literal["geometric", "pid"], roll_deg: float) -> LaunchTrace:
     """Simulate one launch at the scenario's physics rate for launch_study.duration_s."""
     study = cfg.launch_study
     inner = InnerLoopConfig(controller=controller, geometric=cfg.inner_loop.geometric, pid=cfg.inner_loop.pid)
