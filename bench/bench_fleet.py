@@ -21,6 +21,8 @@ from pathlib import Path
 
 import yaml
 
+from companion.config import read_yaml
+
 ROOT = Path(__file__).resolve().parents[1]
 PAPER = ROOT / "configs" / "paper_40.yaml"
 
@@ -52,7 +54,7 @@ def _fleet_figures(report) -> dict:
 
 
 def fleet(config: Path, out: Path, **options) -> dict:
-    from sim_bridge.fleet import FleetOptions, run_fleet
+    from sim_bridge.runs.fleet import FleetOptions, run_fleet
 
     report, _ = run_fleet(config, FleetOptions(out_dir=out, progress=False, figures=False, **options))
     return _fleet_figures(report)
@@ -106,7 +108,7 @@ def signing(tmp: Path) -> dict:
 
 
 def capacity(tmp: Path, sizes=(40, 60, 80, 100), sim_s: float = 30.0) -> dict:
-    base = yaml.safe_load(PAPER.read_text())
+    base = read_yaml(PAPER)
     rows = []
     for n in sizes:
         cfg = copy.deepcopy(base)
@@ -133,7 +135,7 @@ def agent_startup(tmp: Path) -> dict:
     from sim_bridge.sitl.testing import free_udp_base_port
 
     base = free_udp_base_port(3)
-    mission = yaml.safe_load(PAPER.read_text())
+    mission = read_yaml(PAPER)
     mission["mission"]["n_vehicles"] = 1
     cfg = tmp / "one.yaml"
     cfg.write_text(yaml.safe_dump(mission))
@@ -159,7 +161,7 @@ def agent_startup(tmp: Path) -> dict:
         while time.monotonic() < deadline and not (stats.exists() and "setup_s" in stats.read_text()):
             time.sleep(0.2)
         time.sleep(6.0)  # a measurement window, not synchronisation: PSS once the agent has flown a while
-        from sim_bridge.fleet import pss_mb
+        from sim_bridge.runs.fleet import pss_mb
 
         pss = pss_mb(agent.pid)
         s = json.loads(stats.read_text())
@@ -167,7 +169,7 @@ def agent_startup(tmp: Path) -> dict:
                 "note": "startup = process start to a constructed node (imports, mission file, sockets); "
                         "setup = then to flying (streams, clock, EKF origin, parameters)"}
     finally:
-        from sim_bridge.fleet import terminate_all
+        from sim_bridge.runs.fleet import terminate_all
 
         terminate_all((agent, sitl))
 

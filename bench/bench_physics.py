@@ -12,7 +12,7 @@ import numpy as np
 
 from companion.params import InnerLoopConfig, VehicleParams
 from companion.state import FleetSetpoint
-from sim_bridge.physics import Physics, hover_state
+from sim_bridge.world.physics import Physics, hover_state
 
 FLEET_SIZES = (40, 400, 4000)
 CONTROLLERS = ("geometric", "pid")

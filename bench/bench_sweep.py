@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 def run(seeds: int = 100, workers: int | None = None, config: str = "configs/paper_40.yaml") -> dict:
     import numpy as np
 
-    from sim_bridge.sweep import plan_batches, run_one, run_seeds, run_sweep
+    from sim_bridge.runs.sweep import plan_batches, run_one, run_seeds, run_sweep
 
     workers = workers or os.cpu_count() or 1
     path = str(ROOT / config)

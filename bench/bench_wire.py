@@ -7,6 +7,9 @@ where to write it); ``python -m bench.bench_wire`` prints it as JSON.
 Each figure is the best of several repeats of a timed loop (steady state, caches warm),
 in microseconds per message. "first_decode_us" is one decode by a fresh Codec, i.e.
 including building that message type's plan (median of a few fresh codecs).
+"encode_named_us" encodes through the named-field builder (``Codec.builder``, resolved
+once), the way the agent and the SITL build messages; "build_named_us" is the builder
+call alone, what naming the fields costs over a positional list ("encode_fields_us").
 """
 from __future__ import annotations
 
@@ -59,6 +62,10 @@ def _case(msg, number: int, repeat: int) -> dict:
         raise AssertionError(f"{msg.get_type()}: codec and pymavlink frames differ")
     values = [getattr(msg, name) for name in msg.fieldnames]
     msgid = type(msg).id
+    build = codec.builder(msgid)  # resolved once (companion.link.builder), as the agent and SITL do
+    named = {name: getattr(msg, name) for name in msg.fieldnames}
+    if codec.encode_fields(msgid, build(**named), SYSID, COMPID, SEQ) != frame:
+        raise AssertionError(f"{msg.get_type()}: the named-field builder's frame differs")
     parser = sd.MAVLink(None)
     parser.robust_parsing = True
 
@@ -66,6 +73,9 @@ def _case(msg, number: int, repeat: int) -> dict:
         "decode_us": _best_us(lambda: codec.decode(frame), number, repeat),
         "encode_us": _best_us(lambda: codec.encode(msg, SYSID, COMPID, SEQ), number, repeat),
         "encode_fields_us": _best_us(lambda: codec.encode_fields(msgid, values, SYSID, COMPID, SEQ), number, repeat),
+        "build_named_us": _best_us(lambda: build(**named), number, repeat),
+        "encode_named_us": _best_us(lambda: codec.encode_fields(msgid, build(**named), SYSID, COMPID, SEQ), number,
+                                    repeat),
         "first_decode_us": _first_decode_us(frame),
     }
     pym = {

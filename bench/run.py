@@ -9,7 +9,9 @@
 - signing.json: paper_40 unsigned and with `--signing`, back to back (the CPU signing costs),
   and µs to sign and check one frame;
 - sweep.json: `swarmdrop sweep` on paper_40 over 100 seeds on a local Dask cluster: wall time,
-  runs per minute, parallel efficiency.
+  runs per minute, parallel efficiency;
+- console.json: the `swarmdrop console` page with 1,000 synthetic vehicles at 10 Hz, in Debian's
+  headless Chromium: frame interval and draw time (p50, p95) read from the page (target p95 <= 50 ms).
 
 `python -m bench.run NAME ...` runs only the named parts.
 """
@@ -40,8 +42,8 @@ def _write(name: str, data: dict) -> Path:
 
 
 def bench_paper_40() -> dict:
-    from sim_bridge.headless import run_scenario
-    from sim_bridge.simulate import load_scenario
+    from sim_bridge.runs.headless import run_scenario
+    from sim_bridge.scenario import load_scenario
 
     cfg = load_scenario(Path(__file__).resolve().parents[1] / "configs" / "paper_40.yaml")
     run_scenario(load_scenario_small(cfg), progress=False)  # compile the kernels outside the timing
@@ -69,7 +71,8 @@ def load_scenario_small(cfg):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parts = set(sys.argv[1:] if argv is None else argv) or {"physics", "paper_40", "sitl", "wire", "fleet", "signing", "sweep"}
+    parts = set(sys.argv[1:] if argv is None else argv) or {"physics", "paper_40", "sitl", "wire", "fleet", "signing", "sweep",
+                                                            "console"}
     if "physics" in parts:
         from bench.bench_physics import run as run_physics
 
@@ -100,6 +103,10 @@ def main(argv: list[str] | None = None) -> int:
         from bench.bench_sweep import run as run_sweep
 
         _write("sweep", run_sweep())
+    if "console" in parts:
+        from bench.bench_console import run as run_console
+
+        _write("console", run_console())
     return 0
 
 

@@ -10,7 +10,7 @@ from companion.control.pid import pid_control, pid_gains_per_unit
 from companion.control.so3 import exp_so3_np
 from companion.params import GRAVITY_MPS2, GeometricGains, InnerLoopConfig, PIDGains, VehicleParams
 from companion.state import FleetSetpoint, FleetState
-from sim_bridge.physics import Physics, hover_state
+from sim_bridge.world.physics import Physics, hover_state
 
 VP = VehicleParams()
 GG = GeometricGains()

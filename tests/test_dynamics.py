@@ -6,8 +6,8 @@ from companion.control.geometric import max_thrust_n
 from companion.frames import euler_zyx_to_rot, yaw_rad
 from companion.params import GRAVITY_MPS2, InnerLoopConfig, VehicleParams
 from companion.state import FleetSetpoint, FleetState
-from sim_bridge.dynamics import allocate_np, inverse_mixer_np, mixer_np, step_open_loop
-from sim_bridge.physics import Physics, WindConfig, hover_rotor_speed_radps, hover_state
+from sim_bridge.world.dynamics import allocate_np, inverse_mixer_np, mixer_np, step_open_loop
+from sim_bridge.world.physics import Physics, WindConfig, hover_rotor_speed_radps, hover_state
 
 VP = VehicleParams()
 
@@ -182,7 +182,7 @@ def test_physics_active_mask_and_errors():
 
 def test_shared_wind_field_blows_the_same_on_every_group():
     """The SITL steps each parameter group's Physics on one WindField it advances per tick."""
-    from sim_bridge.physics import WindField
+    from sim_bridge.world.physics import WindField
 
     vp = VehicleParams(drag_coeff_n_per_mps=0.01)
     field = WindField(WindConfig(steady_ned_mps=(1.0, 0, 0), gust_std_mps=2.0, gust_tau_s=0.5), 1e-3,
@@ -208,8 +208,12 @@ def test_wind_without_drag_is_a_config_error(where):
     from sim_bridge.sitl.config import SitlConfig
 
     wind = {"steady_ned_mps": [3.0, 0.0, 0.0]}
-    data, cls = ({"physics": {"wind": wind}}, ScenarioConfig) if where == "scenario" else ({"wind": wind}, SitlConfig)
+    # the SITL reads the scenario schema for its world: one validator for both
+    data: dict = {"physics": {"wind": wind}}
+    ok: dict = dict(data, vehicle={"drag_coeff_n_per_mps": 0.0065})
+    cls: type = ScenarioConfig
+    if where == "sitl":
+        data, ok, cls = {"scenario": data}, {"scenario": ok}, SitlConfig
     with pytest.raises(ConfigError, match="drag_coeff_n_per_mps is 0"):
         validate(cls, data, "cfg.yaml")
-    data_ok = dict(data, vehicle={"drag_coeff_n_per_mps": 0.0065})
-    validate(cls, data_ok, "cfg.yaml")
+    validate(cls, ok, "cfg.yaml")

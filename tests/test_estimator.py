@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from sim_bridge.estimator import Estimator, EstimatorConfig
+from sim_bridge.world.estimator import Estimator, EstimatorConfig
 
 
 def _truth(n, t):
@@ -42,10 +42,12 @@ def test_position_error_is_gauss_markov_with_the_configured_std_and_correlation(
 
 
 def test_sitl_reports_the_estimate_not_the_truth():
-    from sim_bridge.sitl.config import SitlConfig
+    from companion.config import replace
+    from sim_bridge.sitl.config import default_scenario, sitl_config
     from sim_bridge.sitl.server import SitlServer
 
-    s = SitlServer(SitlConfig(vehicles=4, estimator=EstimatorConfig(pos_noise_std_m=2.0, vel_noise_std_mps=0.5)))
+    sc = replace(default_scenario(), estimator=EstimatorConfig(pos_noise_std_m=2.0, vel_noise_std_mps=0.5))
+    s = SitlServer(sitl_config(4, scenario=sc))
     snap = s.telemetry.snapshot(1.0)
     d = snap.pos_ned_m - s.state.pos_ned_m
     assert np.abs(d[:, :2]).max() > 0.1 and np.abs(d[:, 2]).max() == 0.0
@@ -59,9 +61,9 @@ def test_gps_error_does_not_walk_a_headless_formation_away():
     import dataclasses
     from pathlib import Path
 
-    from sim_bridge.headless import run_scenario
-    from sim_bridge.metrics import compute_metrics
-    from sim_bridge.simulate import load_scenario
+    from sim_bridge.reports.metrics import compute_metrics
+    from sim_bridge.runs.headless import run_scenario
+    from sim_bridge.scenario import load_scenario
 
     cfg = load_scenario(Path(__file__).resolve().parents[1] / "configs" / "small_6.yaml")
     cfg = dataclasses.replace(cfg, completion_tol_m=1.0, estimator=EstimatorConfig(
