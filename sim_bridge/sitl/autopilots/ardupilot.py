@@ -72,6 +72,10 @@ class ArduPilotBehaviour(AutopilotBehaviour):
               "root, cm/s^2"),
             f("WPNAV_ACCEL_Z", 100.0, 50.0, 500.0, "vertical acceleration of the position controller's square "
               "root, cm/s^2"),
+            # Read by the agents for their ghost of a silent vehicle (its stop); the SITL's
+            # GUIDED stop flies the loops above without ArduPilot's jerk-limited shaping.
+            f("PSC_JERK_XY", 5.0, 1.0, 20.0, "horizontal jerk limit of the position controller, m/s^3"),
+            f("PSC_JERK_Z", 5.0, 5.0, 50.0, "vertical jerk limit of the position controller, m/s^3"),
             f("GUID_TIMEOUT", 3.0, 0.1, 5.0, "GUIDED: setpoint timeout, s (then stop / level)",
               (R.OFFBOARD_TIMEOUT_S,)),
             i("GUID_OPTIONS", 0, 0, 65535, "GUIDED options; bit 3 (8): SET_ATTITUDE_TARGET thrust is thrust"),

@@ -41,6 +41,8 @@ class Px4Behaviour(AutopilotBehaviour):
               (R.TILT_MAX_DEG,)),
             f("MPC_THR_HOVER", hover_thrust, 0.05, 0.95, "normalised collective thrust that hovers", (R.HOVER_THRUST,),
               read_only=True),
+            i("MPC_USE_HTE", 1, 0, 1, "1: the position loop flies on the hover-thrust estimator's value (modelled "
+              "converged to the airframe's true hover thrust), not MPC_THR_HOVER"),
             f("MPC_THR_MIN", 0.12, 0.0, 1.0, "offboard thrust floor (normalised)"),
             f("MPC_THR_MAX", 1.0, 0.0, 1.0, "offboard thrust ceiling (normalised)"),
             f("MPC_XY_VEL_MAX", 12.0, 0.0, 20.0, "horizontal speed limit of offboard velocity setpoints, m/s"),
@@ -58,6 +60,12 @@ class Px4Behaviour(AutopilotBehaviour):
             f("MPC_Z_VEL_I_ACC", 2.0, 0.2, 3.0, "vertical velocity I: acceleration per velocity integral, 1/s^2"),
             f("MPC_Z_VEL_D_ACC", 0.0, 0.0, 2.0, "vertical velocity D: acceleration per velocity derivative"),
             f("MPC_VELD_LP", 5.0, 0.0, 10.0, "low-pass of the velocity derivative (the D terms), Hz"),
+            # Read by the agents for their ghost of a silent vehicle (its stop); the SITL's Hold
+            # and Land fly a step target through the loops above, not PX4's jerk-limited one.
+            f("MPC_ACC_HOR", 3.0, 2.0, 15.0, "horizontal acceleration limit of auto modes, m/s^2"),
+            f("MPC_ACC_UP_MAX", 4.0, 2.0, 15.0, "upward acceleration limit of auto modes, m/s^2"),
+            f("MPC_ACC_DOWN_MAX", 3.0, 2.0, 15.0, "downward acceleration limit of auto modes, m/s^2"),
+            f("MPC_JERK_AUTO", 4.0, 1.0, 80.0, "jerk limit of auto modes, m/s^3"),
             f("MPC_THR_XY_MARG", 0.3, 0.0, 0.5, "horizontal thrust kept while vertical thrust has priority"),
             f("COM_OF_LOSS_T", 1.0, 0.0, 60.0, "offboard setpoint timeout: the last setpoint is flown this long, s",
               (R.OFFBOARD_TIMEOUT_S,)),
@@ -84,7 +92,16 @@ class Px4Behaviour(AutopilotBehaviour):
     def position_loop(self, table: ParamTable, hover_thrust_true: float) -> PositionLoopGains:
         """mc_pos_control's PositionControl with the table's MPC_* gains and Offboard limits
         (MPC_XY_VEL_MAX, MPC_Z_VEL_MAX_UP/DN, MPC_TILTMAX_AIR, MPC_THR_MIN/MAX), thrust scaled by
-        MPC_THR_HOVER; the D terms act on the velocity derivative, low-passed at MPC_VELD_LP."""
+        MPC_THR_HOVER, or with MPC_USE_HTE 1 (PX4's default) by the hover-thrust estimator's
+        value, modelled as converged to the airframe's true hover thrust (a real PX4 SIH read
+        0.49 against MPC_THR_HOVER 0.5: ../shared notes, issue 18); the D terms act on the
+        velocity derivative, low-passed at MPC_VELD_LP.
+
+        Why the estimator matters: with the loop on a wrong hover thrust, the vertical
+        integrator holds the difference, and PositionControl's horizontal anti-windup, which
+        compares the demanded with the produced horizontal acceleration (a0 (1 - a2 / g) with a
+        vertical demand a2), then winds the horizontal integrator against a sustained
+        feed-forward: a vehicle in a long 3 m/s^2 demand drifted off for good in our model."""
         t = table
         thr_min = max(t["MPC_THR_MIN"], 1e-3)  # (PositionControl::setThrustLimits keeps a thrust direction)
         return PositionLoopGains(
@@ -94,7 +111,8 @@ class Px4Behaviour(AutopilotBehaviour):
             vel_max_xy_mps=t["MPC_XY_VEL_MAX"], vel_max_up_mps=t["MPC_Z_VEL_MAX_UP"],
             vel_max_dn_mps=t["MPC_Z_VEL_MAX_DN"], tilt_max_rad=math.radians(min(t.role(Role.TILT_MAX_DEG), 89.0)),
             thr_min=thr_min, thr_max=max(thr_min, t["MPC_THR_MAX"]), thr_xy_margin=t["MPC_THR_XY_MARG"],
-            hover_param=t.role(Role.HOVER_THRUST), hover_true=hover_thrust_true, vel_d_lp_hz=t["MPC_VELD_LP"])
+            hover_param=hover_thrust_true if t["MPC_USE_HTE"] >= 1 else t.role(Role.HOVER_THRUST),
+            hover_true=hover_thrust_true, vel_d_lp_hz=t["MPC_VELD_LP"])
 
     def failure_injection_enabled(self, table: ParamTable) -> bool:
         return table.get("SYS_FAILURE_EN", 0.0) == 1.0
