@@ -145,7 +145,7 @@ def own_checks_rows(t_s, pos, vel, q, stamp_s, own_timeout_s, valid, cos_tilt):
 
 @kernel
 def finish_rows(rows, p, v, acc, h_pos, h_vel, valid, ready, phase, state_kind, lead_s, yaw_rad, land_speed_mps,
-                assembled_pos_m, assembled_speed_mps, sp_pos, sp_vel, sp_acc, sp_yaw, slot, assembled, flags):
+                land_xy, assembled_pos_m, assembled_speed_mps, sp_pos, sp_vel, sp_acc, sp_yaw, slot, assembled, flags):
     """The setpoints, slots, assembled and published flags of a tick (Agent.step).
 
     Formation row rows[r] (index into the own vehicles) flies acc[r]: as an acceleration,
@@ -154,11 +154,13 @@ def finish_rows(rows, p, v, acc, h_pos, h_vel, valid, ready, phase, state_kind, 
     where the vehicle was heading; it is assembled once within assembled_pos_m of its
     slot h_pos[r] and assembled_speed_mps of the slot's velocity. Then every own
     vehicle: an invalid own state in ASSEMBLE or later stops (zero velocity, flown on
-    the autopilot's own estimate); LAND descends at land_speed_mps; flags gets the
-    FLAG_* bits.
+    the autopilot's own estimate); LAND descends at land_speed_mps over the point where
+    it began (land_xy: the position target holds it there, so the autopilot's loops take
+    out a bias or a wind instead of letting the vehicle drift into a neighbour's
+    column); flags gets the FLAG_* bits.
 
     Args: rows (R,); p, v (n, 3) own state; acc, h_pos, h_vel (R, 3); valid, ready (n,)
-        bool; phase (n,). Written: sp_pos, sp_vel, sp_acc, slot (n, 3), sp_yaw (n,)
+        bool; phase (n,); land_xy (n, 2) NED m, where each LAND began. Written: sp_pos, sp_vel, sp_acc, slot (n, 3), sp_yaw (n,)
         (NaN where not commanded, as given), assembled (n,) bool, flags (n,) uint8.
     """
     for r in range(rows.shape[0]):
@@ -182,6 +184,9 @@ def finish_rows(rows, p, v, acc, h_pos, h_vel, valid, ready, phase, state_kind, 
             sp_vel[i, 0], sp_vel[i, 1], sp_vel[i, 2] = 0.0, 0.0, 0.0
         elif valid[i] and phase[i] == _LAND:
             sp_vel[i, 0], sp_vel[i, 1], sp_vel[i, 2] = 0.0, 0.0, land_speed_mps
+            if state_kind:  # the column over the landing point, and a height that leads as the speed
+                sp_pos[i, 0], sp_pos[i, 1] = land_xy[i, 0], land_xy[i, 1]
+                sp_pos[i, 2] = p[i, 2] + land_speed_mps * lead_s
             sp_yaw[i] = yaw_rad
         f = 0
         if assembled[i]:
@@ -292,6 +297,8 @@ class Agent:
         self.phase = np.full(n, _LAUNCH, dtype=np.int8)
         self.stable_since_s = np.full(n, np.nan)
         self.assembled = np.zeros(n, dtype=bool)
+        self.land_xy_ned_m = np.full((n, 2), np.nan)
+        """(n, 2) where each vehicle in LAND began its descent (NaN: not landing), NED m."""
         self.t_go_s = np.full(n, np.nan)
         self.go_ready_since_s = np.full(n, np.nan)
         self.go_stall_since_s = np.full(n, np.nan)
@@ -618,9 +625,15 @@ class Agent:
             acc = h_pos = h_vel = self._no_rows
         ph = cfg.phases
         flags = np.empty(n, np.uint8)
+        landing = phase == Phase.LAND
+        self.land_xy_ned_m[~landing] = np.nan
+        starts = landing & np.isnan(self.land_xy_ned_m[:, 0])
+        if starts.any():
+            self.land_xy_ned_m[starts] = own.pos_ned_m[starts, :2]
         self.kernels.finish_rows(rows, own.pos_ned_m, own.vel_ned_mps, acc, h_pos, h_vel, valid,
                                  np.asarray(own.ready, np.bool_), phase, cfg.setpoint.kind == "state",
-                                 cfg.setpoint.lead_s, m.yaw_rad, ph.land_speed_mps, ph.assembled_pos_m,
+                                 cfg.setpoint.lead_s, m.yaw_rad, ph.land_speed_mps, self.land_xy_ned_m,
+                                 ph.assembled_pos_m,
                                  ph.assembled_speed_mps, sp.pos_ned_m, sp.vel_ned_mps, sp.acc_ned_mps2, sp.yaw_rad,
                                  slot, self.assembled, flags)
         if view.intruders is not None:  # someone else claims our id: say so in our state

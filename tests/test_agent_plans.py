@@ -105,3 +105,29 @@ def test_land_all_lands_everyone_and_abort_hands_over():
     assert out.handed_over.all() and np.isnan(out.setpoint.acc_ned_mps2).all()
     assert np.isnan(out.setpoint.pos_ned_m).all() and np.isnan(out.setpoint.vel_ned_mps).all()
     assert (out.published.flags & FLAG_HANDED_OVER).all()
+
+
+def test_a_landing_vehicle_is_held_over_the_point_where_its_descent_began():
+    """LAND sends the column over where the descent began (position x, y held, the height
+    leading by the descent speed), so the autopilot's loops take a drift out instead of
+    flying the vehicle wherever a bias pushes it (paper_40 with a schedule: two vehicles
+    drifted to 0.54 m apart on the way down)."""
+    m = _mission()
+    sw = Swarm(m)
+    sw.run(10.0)
+    src = CommandSource(m)
+    src.set_t_go(float(sw.agent.t_go_s[0]))
+    plan = src.land(10.0)
+    sw.run(25.0, [(10.0, np.arange(4), plan)])
+    assert (sw.agent.phase == Phase.LAND).all()
+    start_xy = sw.agent.land_xy_ned_m.copy()
+    assert np.isfinite(start_xy).all()
+    sw.pos[:, 1] += 0.7  # pushed sideways while descending
+    t = sw.t
+    own = OwnState(sw.pos, sw.vel, np.tile(Q, (4, 1)), np.full(4, t), np.ones(4, bool), np.ones(4, bool))
+    out = sw.agent.step(t, own, sw.view)
+    np.testing.assert_array_equal(out.setpoint.pos_ned_m[:, :2], start_xy)  # back over the landing point
+    lead = m.cfg.setpoint.lead_s
+    land = m.cfg.phases.land_speed_mps
+    np.testing.assert_allclose(out.setpoint.pos_ned_m[:, 2], sw.pos[:, 2] + land * lead)
+    np.testing.assert_array_equal(out.setpoint.vel_ned_mps, np.tile([0.0, 0.0, land], (4, 1)))
