@@ -26,9 +26,11 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
 from companion.agent import Phase  # noqa: E402
+from companion.control.ghost import ghost_capsules  # noqa: E402
 from companion.frames import geodetic_to_ned  # noqa: E402
 from companion.link.dialects import Mode, dialect_named  # noqa: E402
 from companion.link.dialects.base import AfterLoss  # noqa: E402
+from companion.mission import MissionConfig  # noqa: E402
 from sim_bridge.runs.fleet import EPOCH_UNIX_S  # noqa: E402
 
 pytestmark = pytest.mark.slow
@@ -198,6 +200,36 @@ def check_tlog(run: Run, dialect) -> None:
     assert dump.stdout.startswith("2026-01-01 00:00:00")  # the SITL's fixed epoch
 
 
+def loss_params_from_tlog(run: Run, dialect, sysid: int) -> dict[str, float]:
+    """The loss parameters the killed vehicle's autopilot reported (the agent reads them at
+    set-up; integers travel bytewise in PX4's encoding)."""
+    msgs = read_tlog(run.tlog, ["PARAM_VALUE"])
+    out = {}
+    for m in msgs:
+        if m.get_srcSystem() == sysid and m.param_id in dialect.loss_params:
+            v = m.param_value
+            if m.param_id == "COM_OBL_RC_ACT":
+                v = struct.unpack("<i", struct.pack("<f", v))[0]
+            out[m.param_id] = v
+    return out
+
+
+def assert_path_inside_ghost(run: Run, config: Path, loss, t_last_s: float, killed: int) -> None:
+    """The killed vehicle's true path from its last setpoint on lies inside the swarm's ghost
+    of it (companion.control.ghost: its autopilot's loss behaviour, the agents' bound on the
+    acceleration feed-forward, the ghost radius), from its true state at that time."""
+    mission = MissionConfig(**yaml.safe_load(config.read_text())["mission"])
+    tel = run.tel
+    i0 = int(np.searchsorted(tel["t_s"], t_last_s, side="right")) - 1  # the sample at or before it
+    lag = float(t_last_s - tel["t_s"][i0]) + 0.05  # (and the last setpoint's own period)
+    caps = ghost_capsules(tel["pos_ned_m"][i0, killed].astype(float), tel["vel_ned_mps"][i0, killed].astype(float),
+                          0.0, loss, mission.setpoint.acc_ff_max_mps2, mission.ground_z_m,
+                          mission.swarm.ghost_radius_m, lag_s=lag)
+    path = tel["pos_ned_m"][i0:, killed].astype(float)
+    inside = caps.contains(path)
+    assert inside.all(), f"left its ghost at t = {tel['t_s'][i0 + int(np.argmin(inside))]:.2f} s"
+
+
 # ---------------------------------------------------------------------------- runs (module-scoped)
 @pytest.fixture(scope="module")
 def cfg_dir(tmp_path_factory) -> Path:
@@ -280,7 +312,8 @@ def test_killed_agent_autopilot_does_what_px4_does_and_the_swarm_goes_on(cfg_dir
     what COM_OBL_RC_ACT says, as the value the tlog shows (the agents set or verify it at
     set-up): 5 Hold for ever (it never lands by itself), 4 Land; the stock 0 without RC the
     no-RC descent with no horizontal control."""
-    run = fly(tmp_path / "run", write_config(cfg_dir, "fleet4"), "--kill-agent", f"{KILLED}@{KILL_AT_S:g}")
+    config = write_config(cfg_dir, "fleet4")
+    run = fly(tmp_path / "run", config, "--kill-agent", f"{KILLED}@{KILL_AT_S:g}")
     fl = run.metrics["fleet"]
     assert fl["dead_agents"] == {str(KILLED): -9} and fl["killed_agents"] == [KILLED]
     sysid = KILLED + 1
@@ -302,6 +335,7 @@ def test_killed_agent_autopilot_does_what_px4_does_and_the_swarm_goes_on(cfg_dir
     dt = t(first) - t_last
     assert COM_OF_LOSS_T - 1e-6 <= dt <= COM_OF_LOSS_T + AUTOPILOT_PERIOD_S + 1e-6, dt
     assert first.system_status == 5  # CRITICAL: in failsafe
+    assert_path_inside_ghost(run, config, loss, t_last, KILLED)
     tel = run.tel
     i_after = int(np.searchsorted(tel["t_s"], t(first) + 3.0))
     if loss.then == AfterLoss.HOLD:  # for ever: no other mode, still in the air
@@ -333,6 +367,39 @@ def test_killed_agent_autopilot_does_what_px4_does_and_the_swarm_goes_on(cfg_dir
         except psutil.Error:  # ended meanwhile
             pass
     assert kids == []
+
+
+@pytest.mark.timeout(200)
+def test_killed_agent_ardupilot_flies_on_for_guid_timeout_then_holds_in_guided_inside_its_ghost(cfg_dir, tmp_path):
+    """ArduPilot on companion loss: the last velocity and acceleration for GUID_TIMEOUT, then
+    a stop and a hold in GUIDED for ever (no mode change, no landing); the path lies inside
+    the swarm's ghost of it and nobody comes within 1 m."""
+    config = write_config(cfg_dir, "fleet4")
+    run = fly(tmp_path / "run", config, "--dialect", "ardupilot", "--kill-agent", f"{KILLED}@{KILL_AT_S:g}")
+    assert run.metrics["fleet"]["killed_agents"] == [KILLED]
+    sysid = KILLED + 1
+    loss = ARDUPILOT.loss_behaviour(loss_params_from_tlog(run, ARDUPILOT, sysid))
+    assert loss.then == AfterLoss.HOLD and loss.mode == Mode.OFFBOARD
+    msgs = read_tlog(run.tlog, ["HEARTBEAT", "SET_POSITION_TARGET_LOCAL_NED"])
+    t = lambda m: m._timestamp - EPOCH_UNIX_S  # noqa: E731
+    t_last = t([m for m in msgs if m.get_type() == "SET_POSITION_TARGET_LOCAL_NED" and m.get_srcSystem() == sysid][-1])
+    guided = ARDUPILOT.custom_mode(Mode.OFFBOARD)
+    hb = [m for m in msgs if m.get_type() == "HEARTBEAT" and m.get_srcSystem() == sysid and m.get_srcComponent() == 1
+          and t(m) >= t_last]
+    assert hb and all(m.custom_mode == guided and m.base_mode & 128 for m in hb)  # GUIDED and armed to the end
+    assert_path_inside_ghost(run, config, loss, t_last, KILLED)
+    tel = run.tel
+    # It may carry an acceleration feed-forward for the whole GUID_TIMEOUT (here up to 9 m/s
+    # from assembly), then brakes at WPNAV_ACCEL (2.5 m/s^2): at rest well within 8 s.
+    i_held = int(np.searchsorted(tel["t_s"], t_last + loss.timeout_s + 8.0))
+    if i_held < len(tel["t_s"]):  # stopped after GUID_TIMEOUT, and still in the air
+        assert np.linalg.norm(tel["vel_ned_mps"][i_held:, KILLED], axis=1).max() < 0.3
+        assert tel["pos_ned_m"][-1, KILLED, 2] < -1.0
+    others = [k for k in range(N) if k != KILLED]
+    assert (tel["phase"][-1, others] == Phase.HOVER).all(), tel["phase"][-1]
+    d_min, pair, t_min = run.min_separation_m()
+    assert d_min >= 1.0, f"vehicles {pair} {d_min:.2f} m apart at t={t_min:.2f} s"
+    assert run.leftovers == [], run.leftovers
 
 
 @pytest.mark.timeout(200)
