@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 
 from companion.control.formation import consensus_rows
 from companion.control.geometric import N_SP, pack_setpoint
@@ -33,9 +34,13 @@ faults: {random_rotor_failures: 1, random_window_s: [15.0, 25.0]}
 def disturbed_small(tmp_path_factory) -> Path:
     """small_6 in a disturbed world: gusts through drag, GPS error and latency, a lossy
     jittery link and one random rotor failure, so that every per-run stream is exercised."""
-    text = (ROOT / "configs" / "small_6.yaml").read_text().replace("completion_tol_m: 0.05", "completion_tol_m: 3.0")
+    data = yaml.safe_load((ROOT / "configs" / "small_6.yaml").read_text())
+    data["completion_tol_m"] = 3.0
+    extra = yaml.safe_load(DISTURBED)
+    extra["estimator"] = {**data.get("estimator", {}), **extra["estimator"]}  # the shipped bias stays
+    data.update(extra)
     path = tmp_path_factory.mktemp("cfg") / "small_6_disturbed.yaml"
-    path.write_text(text + DISTURBED)
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
     return path
 
 

@@ -30,11 +30,15 @@ DT = 0.002
 HOVER_Z = -10.0
 
 
-def default_gains(autopilot: str, vp: VehicleParams, hover_param: float | None = None) -> PositionLoopGains:
-    """The autopilot's loop with its default parameters (its own table, as the SITL builds it)."""
+def default_gains(autopilot: str, vp: VehicleParams, hover_param: float | None = None,
+                  **params: float) -> PositionLoopGains:
+    """The autopilot's loop with its default parameters (its own table, as the SITL builds it),
+    and `params` set in it."""
     true = hover_thrust_norm(vp)
     behaviour = autopilot_named(autopilot)
     table = ParamTable(behaviour.param_specs(InnerLoopConfig(), 1, true if hover_param is None else hover_param))
+    for name, value in params.items():
+        assert table.set(name, value), name
     return behaviour.position_loop(table, true)
 
 
@@ -153,14 +157,19 @@ def test_a_disturbance_leaves_the_closed_form_offset_under_a_p_only_loop_and_non
 
 @pytest.mark.parametrize("autopilot", ["px4", "ardupilot"])
 def test_a_hover_thrust_parameter_off_by_e_offsets_the_height_without_integrators_and_not_with(autopilot):
-    """The autopilot scales thrust by its hover-thrust parameter, Th (1 + e) against the
-    airframe's true Th: PX4 realises (1 + e) times the specific force it asks for, so a
-    P-only vertical loop settles g e / ((1 + e) Kv Kp) high; ArduPilot adds Th e of throttle
+    """The autopilot scales thrust by its hover-thrust parameter (PX4 with MPC_USE_HTE 0; by
+    default PX4 flies its estimator's value), Th (1 + e) against the airframe's true Th: PX4
+    realises (1 + e) times the specific force it asks for, so a P-only vertical loop
+    settles g e / ((1 + e) Kv Kp) high; ArduPilot adds Th e of throttle
     at its hover point, g e of acceleration, settling g e / (K Kv Kp) high. The integrators
     (PX4 MPC_Z_VEL_I_ACC, ArduPilot PSC_ACCZ_I) take it away."""
     vp = VehicleParams()
     e = 0.07
-    g = default_gains(autopilot, vp, hover_param=hover_thrust_norm(vp) * (1 + e))
+    if autopilot == "px4":  # by default PX4 flies its hover-thrust estimator's value, not the parameter
+        assert default_gains(autopilot, vp, hover_param=hover_thrust_norm(vp) * (1 + e)).hover_param \
+            == hover_thrust_norm(vp)
+    g = default_gains(autopilot, vp, hover_param=hover_thrust_norm(vp) * (1 + e),
+                      **({"MPC_USE_HTE": 0} if autopilot == "px4" else {}))
     assert g.hover_param == pytest.approx(g.hover_true * 1.07)
     p_only = dataclasses.replace(g, vel_i_z_per_s2=0.0, acc_z_i_per_mps2s=0.0)
     _, err = fly_position_hold(vp, p_only, 30.0)
