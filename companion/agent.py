@@ -299,6 +299,7 @@ class Agent:
         self.assembled = np.zeros(n, dtype=bool)
         self.land_xy_ned_m = np.full((n, 2), np.nan)
         """(n, 2) where each vehicle in LAND began its descent (NaN: not landing), NED m."""
+        self._any_land_xy = False
         self.t_go_s = np.full(n, np.nan)
         self.go_ready_since_s = np.full(n, np.nan)
         self.go_stall_since_s = np.full(n, np.nan)
@@ -625,11 +626,12 @@ class Agent:
             acc = h_pos = h_vel = self._no_rows
         ph = cfg.phases
         flags = np.empty(n, np.uint8)
-        landing = phase == Phase.LAND
-        self.land_xy_ned_m[~landing] = np.nan
-        starts = landing & np.isnan(self.land_xy_ned_m[:, 0])
-        if starts.any():
+        landing = phase == _LAND
+        if self._any_land_xy or landing.any():  # (a formation tick does no more than this test)
+            self.land_xy_ned_m[~landing] = np.nan
+            starts = landing & np.isnan(self.land_xy_ned_m[:, 0])
             self.land_xy_ned_m[starts] = own.pos_ned_m[starts, :2]
+            self._any_land_xy = bool(landing.any())
         self.kernels.finish_rows(rows, own.pos_ned_m, own.vel_ned_mps, acc, h_pos, h_vel, valid,
                                  np.asarray(own.ready, np.bool_), phase, cfg.setpoint.kind == "state",
                                  cfg.setpoint.lead_s, m.yaw_rad, ph.land_speed_mps, self.land_xy_ned_m,

@@ -51,13 +51,19 @@ class Swarm:
         return self.log[-1][3]
 
 
-def test_hold_in_transit_stops_the_centre_and_keeps_the_formation():
-    m = _mission()
+def _flying(m, until_s):
+    """A Swarm flown to until_s, and a CommandSource that knows its agreed transit start."""
     sw = Swarm(m)
-    sw.run(20.0)
-    assert (sw.agent.phase == Phase.TRANSIT).all()
+    sw.run(until_s)
     src = CommandSource(m)
     src.set_t_go(float(sw.agent.t_go_s[0]))
+    return sw, src
+
+
+def test_hold_in_transit_stops_the_centre_and_keeps_the_formation():
+    m = _mission()
+    sw, src = _flying(m, 20.0)
+    assert (sw.agent.phase == Phase.TRANSIT).all()
     plan = src.hold(20.0)
     assert 20.0 < plan.effective_s < 21.0
     out = sw.run(40.0, [(20.0, np.arange(4), plan)])
@@ -74,10 +80,7 @@ def test_a_plan_missed_by_some_vehicles_is_flown_by_every_vehicle_that_hears_it_
     """A vehicle that hears the newest plan late (after its effective time) flies the same
     reference as those that heard it on time (Agreement rules, docs/swarm.md)."""
     m = _mission()
-    sw = Swarm(m)
-    sw.run(20.0)
-    src = CommandSource(m)
-    src.set_t_go(float(sw.agent.t_go_s[0]))
+    sw, src = _flying(m, 20.0)
     plan = src.hold(20.0)
     sw.run(22.0, [(20.0, np.array([0, 1, 2]), plan)])
     assert sw.agent.plans.plan_seq.tolist() == [plan.seq] * 3 + [0]
@@ -88,10 +91,7 @@ def test_a_plan_missed_by_some_vehicles_is_flown_by_every_vehicle_that_hears_it_
 
 def test_land_all_lands_everyone_and_abort_hands_over():
     m = _mission()
-    sw = Swarm(m)
-    sw.run(10.0)
-    src = CommandSource(m)
-    src.set_t_go(float(sw.agent.t_go_s[0]))
+    sw, src = _flying(m, 10.0)
     plan = src.land(10.0)
     out = sw.run(40.0, [(10.0, np.arange(4), plan)])
     assert (out.phase == Phase.LAND).all()
@@ -113,10 +113,7 @@ def test_a_landing_vehicle_is_held_over_the_point_where_its_descent_began():
     flying the vehicle wherever a bias pushes it (paper_40 with a schedule: two vehicles
     drifted to 0.54 m apart on the way down)."""
     m = _mission()
-    sw = Swarm(m)
-    sw.run(10.0)
-    src = CommandSource(m)
-    src.set_t_go(float(sw.agent.t_go_s[0]))
+    sw, src = _flying(m, 10.0)
     plan = src.land(10.0)
     sw.run(25.0, [(10.0, np.arange(4), plan)])
     assert (sw.agent.phase == Phase.LAND).all()
