@@ -15,6 +15,7 @@ from companion.link.dialects.base import (
     HeartbeatState,
     LossBehaviour,
     Mode,
+    PositionLoop,
     clamp01,
     param_or,
 )
@@ -25,6 +26,17 @@ GUID_OPTIONS_THRUST = 8
 """GUID_OPTIONS bit 3: SET_ATTITUDE_TARGET.thrust is thrust, not a climb rate."""
 ANGLE_BOOST_COS_MIN = 0.1
 """ArduPilot's angle boost divides by max(cos(lean), 0.1)."""
+
+
+ARDUPILOT_LOOP_DEFAULTS = {
+    "PSC_POSXY_P": 1.0,
+    "PSC_VELXY_P": 2.0,
+    "PSC_VELXY_I": 1.0,
+    "PSC_POSZ_P": 1.0,
+    "PSC_VELZ_P": 5.0,
+    "PSC_VELZ_I": 0.0,
+}
+"""The position-loop parameters and their defaults, in PositionLoop's field order."""
 
 
 class ArduPilot(AutopilotDialect):
@@ -89,6 +101,14 @@ class ArduPilot(AutopilotDialect):
 
     def collective_from_thrust_field(self, thrust: float, cos_tilt: float) -> float:
         return clamp01(clamp01(thrust) / max(cos_tilt, ANGLE_BOOST_COS_MIN))
+
+    loop_params = tuple(ARDUPILOT_LOOP_DEFAULTS)
+
+    def position_loop(self, params: Mapping[str, float]) -> PositionLoop:
+        """ArduCopter AC_PosControl (4.6 defaults): P on position (linear near the target), PID on the
+        horizontal velocity; vertically PSC_VELZ_I is 0 (the ACCZ loop integrates acceleration
+        error, not position), so the agent keeps its own integral on that axis."""
+        return PositionLoop(*(param_or(params, n, d) for n, d in ARDUPILOT_LOOP_DEFAULTS.items()))
 
     loss_params = ("GUID_TIMEOUT", "WPNAV_ACCEL", "WPNAV_ACCEL_Z", "PSC_JERK_XY", "PSC_JERK_Z")
     loss_required_params = ("GUID_TIMEOUT",)

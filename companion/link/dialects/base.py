@@ -184,6 +184,41 @@ class LossBehaviour:
         return text
 
 
+@dataclass(frozen=True)
+class PositionLoop:
+    """The part of an autopilot's position loops a companion's trajectory setpoint meets
+    (docs/agent.md, "Whose integrator"): per axis group, position P (velocity per position
+    error, 1/s), velocity P (acceleration per velocity error, 1/s) and velocity I
+    (acceleration per velocity-error integral, 1/s^2; 0: the autopilot has no velocity
+    integrator on that axis). Horizontal (xy) and vertical (z) as the autopilot's gains.
+    """
+
+    pos_p_xy_per_s: float
+    vel_p_xy_per_s: float
+    vel_i_xy_per_s2: float
+    pos_p_z_per_s: float
+    vel_p_z_per_s: float
+    vel_i_z_per_s2: float
+
+    def stiffness_per_s2(self) -> tuple[float, float, float]:
+        """(north, east, down) acceleration the loops add per metre of position-target offset
+        (velocity P times position P), 1/s^2: what the agent takes out of the feed-forward
+        when it moves the target by a drive (companion.output, step 2)."""
+        xy = self.pos_p_xy_per_s * self.vel_p_xy_per_s
+        return xy, xy, self.pos_p_z_per_s * self.vel_p_z_per_s
+
+    def drive_gain(self, ki_per_s3: float) -> tuple[float, float, float]:
+        """(north, east, down) metres of target offset per metre of slot residual so that the
+        autopilot's velocity integrator learns at ki_per_s3 (its rate per metre of offset is
+        vel_i * pos_p), at most 1; 0 on an axis without a velocity integrator (the agent
+        integrates that axis itself)."""
+        def gain(i: float, p: float) -> float:
+            rate = i * p
+            return min(1.0, ki_per_s3 / rate) if rate > 0.0 and math.isfinite(rate) else 0.0
+        xy = gain(self.vel_i_xy_per_s2, self.pos_p_xy_per_s)
+        return xy, xy, gain(self.vel_i_z_per_s2, self.pos_p_z_per_s)
+
+
 class AutopilotDialect(ABC):
     """One autopilot family's MAVLink conventions (class attributes and small pure methods)."""
 
@@ -259,6 +294,15 @@ class AutopilotDialect(ABC):
     def collective_from_thrust_field(self, thrust: float, cos_tilt: float) -> float:
         """Inverse of thrust_field as a fraction of maximum thrust (SITL side), before
         the hover normalisation: what the motors are asked for."""
+
+    loop_params: ClassVar[tuple[str, ...]] = ()
+    """The parameters position_loop reads (fetch these from the autopilot; acceleration output)."""
+
+    def position_loop(self, params: Mapping[str, float]) -> PositionLoop | None:
+        """The autopilot's position-loop gains with these values of its loop_params (a missing
+        one: the autopilot's default); None: this dialect does not say (the agent then keeps
+        its own integral on every axis)."""
+        return None
 
     loss_params: ClassVar[tuple[str, ...]]
     """The parameters loss_behaviour reads (fetch these from the autopilot)."""

@@ -18,6 +18,7 @@ from companion.link.dialects.base import (
     HeartbeatState,
     LossBehaviour,
     Mode,
+    PositionLoop,
     clamp01,
     param_or,
 )
@@ -38,6 +39,17 @@ accelerometer bias act unopposed; wind adds to it."""
 
 def _px4(main: int, sub: int = 0) -> int:
     return (main << 16) | (sub << 24)
+
+
+PX4_LOOP_DEFAULTS = {
+    "MPC_XY_P": 0.95,
+    "MPC_XY_VEL_P_ACC": 1.8,
+    "MPC_XY_VEL_I_ACC": 0.4,
+    "MPC_Z_P": 1.0,
+    "MPC_Z_VEL_P_ACC": 4.0,
+    "MPC_Z_VEL_I_ACC": 2.0,
+}
+"""The position-loop parameters and their defaults, in PositionLoop's field order."""
 
 
 class Px4(AutopilotDialect):
@@ -106,6 +118,12 @@ class Px4(AutopilotDialect):
 
     def collective_from_thrust_field(self, thrust: float, cos_tilt: float) -> float:
         return clamp01(thrust)
+
+    loop_params = tuple(PX4_LOOP_DEFAULTS)
+
+    def position_loop(self, params: Mapping[str, float]) -> PositionLoop:
+        """PX4 mc_pos_control's PositionControl (v1.14-v1.16 defaults): P on position, PID on velocity."""
+        return PositionLoop(*(param_or(params, n, d) for n, d in PX4_LOOP_DEFAULTS.items()))
 
     loss_params = ("COM_OF_LOSS_T", "COM_OBL_RC_ACT", "MPC_LAND_SPEED", "MPC_ACC_HOR", "MPC_ACC_UP_MAX",
                    "MPC_ACC_DOWN_MAX", "MPC_JERK_AUTO")
