@@ -40,7 +40,9 @@ from companion.commands.track import LAND as ROLE_LAND
 from companion.control.apf import clip_sum_rows, pair_repulsion_rows, segment_repulsion_rows
 from companion.control.formation import consensus_rows, gains_vector
 from companion.control.kernel import kernel
+from companion.link.dialects.base import PositionLoop
 from companion.mission import Mission
+from companion.slot_hold import SlotIntegral
 from companion.state import FleetSetpoint
 from companion.swarm import (
     FLAG_ASSEMBLED,
@@ -265,6 +267,7 @@ class AgentOutput:
         plan_seq: (n,) seq of the swarm plan each vehicle flies (0: the mission's own).
         handed_over: (n,) bool, an ABORT plan handed the vehicle to its autopilot's own Hold:
             the agent sends nothing (its node switches the autopilot to Hold).
+        drive_ned_m: (n, 3) the slot-hold drive (below).
     """
 
     setpoint: FleetSetpoint
@@ -276,6 +279,10 @@ class AgentOutput:
     published: SwarmStates = field(repr=False)
     plan_seq: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     handed_over: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    drive_ned_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    """(n, 3) how far the position target is moved off the setpoint's state so that the
+    autopilot's velocity integrator learns the bias (companion.slot_hold), NED m; the
+    output stage applies it (and takes its pull out of the feed-forward)."""
 
 
 class Agent:
@@ -318,9 +325,9 @@ class Agent:
         self._any_handed_over = False
         self._never = np.full(n, np.nan)
         self._groups: list[RefGroup] = []
-        self.slot_integral_ms = np.zeros((n, 3))
-        """(n, 3) integral of each vehicle's own slot-position error, m s (docs/formation.md,
-        "Integral action"); kept across phases: it is a property of the vehicle (its bias)."""
+        self.slot_hold = SlotIntegral(mission.cfg, n)
+        """The integral on each vehicle's slot residual, the agent's own or driven into its
+        autopilot's velocity integrator (companion.slot_hold; set_autopilot_loop)."""
         self._t_prev_s = math.nan
         cfg = mission.cfg
         self._k = gains_vector(cfg.consensus)
@@ -332,6 +339,14 @@ class Agent:
         self._obs_r = np.broadcast_to(mission.obstacle_radii_m, (n, k))
         self._obs_use = np.broadcast_to(True, (n, k))
         self._no_rows = np.empty((0, 3))
+
+    def set_autopilot_loop(self, rows, loop: PositionLoop | None) -> None:
+        """The autopilots of rows fly the trajectory setpoint with these position loops
+        (acceleration output): the slot-hold integral is driven into their velocity
+        integrators where they have one (companion.slot_hold). Without a position target
+        (setpoint.kind "acceleration") there is nothing to drive: the agent keeps its own.
+        """
+        self.slot_hold.set_autopilot_loop(rows, loop if self.mission.cfg.setpoint.kind == "state" else None)
 
     # ------------------------------------------------------------------ phases
     def _advance_phases(self, t_s: float, own: OwnState, valid: np.ndarray, cos_tilt: np.ndarray,
@@ -456,7 +471,7 @@ class Agent:
                                         self._obs_use[:n_rows], a.obstacle_gain_mps2, a.obstacle_influence_m, a.kappa,
                                         u2)
         if cfg.consensus.ki_pos_per_s3 > 0:
-            self._slot_integral(t_s, rows, p, v, h_pos_rows, h_vel_rows, resid, u1, u2)
+            self.slot_hold.update(t_s - self._t_prev_s, rows, p, v, h_pos_rows, h_vel_rows, resid, u1, u2)
         acc = np.empty((n_rows, 3))
         kern.clip_sum_rows(u1, u2, cfg.consensus_accel_max_mps2, cfg.total_accel_max_mps2, acc)
         return acc, h_pos_rows, h_vel_rows
@@ -488,43 +503,6 @@ class Agent:
         top[..., 2] = np.minimum(pos[..., 2], (pos[..., 2] if ground is None else ground) - m.cfg.takeoff_alt_m)
         self.kernels.segment_repulsion_rows(p, top, pos, np.full(col.shape, sw.ghost_radius_m), col,
                                             a.vehicle_gain_mps2, a.vehicle_influence_m, a.kappa, u2)
-
-    def _slot_integral(self, t_s: float, rows: np.ndarray, p: np.ndarray, v: np.ndarray, h_pos: np.ndarray,
-                       h_vel: np.ndarray, resid: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> None:
-        """Integral action on the own slot error (docs/formation.md, "Integral action"):
-        z' = the law's position residual (consensus_rows' resid: the slot error less what
-        the consensus term asks of the vehicle for its neighbours) plus the repulsion over
-        k2_pos, where it may grow (SlotIntegralConfig), |k_i z| bounded; u1 -= k_i z. At rest
-        that input is (u1 + u2 without the integral) / k2_pos: what the vehicle needs beyond
-        eq. 27 + eq. 30 to stay put, i.e. the bias.
-
-        Args: rows (R,) own rows; p, v (R, 3) their positions and velocities, m and m/s;
-            h_pos, h_vel (R, 3) their slots' positions and velocities; u1 (R, 3) eq. 27, m/s^2, updated in place; u2 (R, 3)
-            the repulsion, m/s^2.
-        """
-        cfg = self.mission.cfg
-        si, ki = cfg.slot_integral, cfg.consensus.ki_pos_per_s3
-        z = self.slot_integral_ms[rows]
-        dt = t_s - self._t_prev_s
-        if dt > 0:  # (NaN on the first step: nothing to integrate yet)
-            # What is left to learn: the law's position residual with the repulsion counted as
-            # part of what the vehicle is asked to hold; at rest by an obstacle (u1 + u2 = 0) it
-            # is 0, with a steady bias b it is b / |k2_pos|.
-            r = resid + u2 / cfg.consensus.k2_pos_per_s2
-            r2 = np.einsum("ij,ij->i", r, r)
-            e, ev = p - h_pos, v - h_vel
-            # Stuck, not closing: the vehicle moves slower than eq. 27's slowest pole would move
-            # it to cover r (a bias holds it still; a transient's tail decays at >= 0.54/s).
-            grow = (r2 < si.zone_m ** 2) & (np.einsum("ij,ij->i", u1, u1) < cfg.consensus_accel_max_mps2 ** 2) \
-                & (np.einsum("ij,ij->i", h_vel, h_vel) < si.slot_speed_max_mps ** 2) \
-                & (np.sqrt(np.einsum("ij,ij->i", ev, ev))
-                   < si.stuck_rate_per_s * np.sqrt(np.minimum(r2, np.einsum("ij,ij->i", e, e))) + si.stuck_speed_mps)
-            if grow.any():  # (every test above is False where a value is NaN)
-                z[grow] += r[grow] * min(dt, si.dt_max_s)
-                zn = np.sqrt(np.einsum("ij,ij->i", z, z))
-                z *= np.minimum(1.0, (si.accel_max_mps2 / ki) / np.maximum(zn, 1e-300))[:, None]
-                self.slot_integral_ms[rows] = z
-        u1 -= ki * z
 
     def _repel_intruders(self, rows: np.ndarray, p: np.ndarray, it: Intruders, age: np.ndarray,
                          u2: np.ndarray) -> None:
@@ -619,6 +597,7 @@ class Agent:
         slot = np.full((n, 3), np.nan)
 
         rows = np.flatnonzero(IN_FORMATION[phase] & valid & ~self.handed_over)
+        self.slot_hold.clear_drive()
         if len(rows):
             groups = self._groups if len(rows) == n else book.references(t_s, self.t_go_s, rows)
             acc, h_pos, h_vel = self._formation_accel(t_s, rows, own, view, age, groups)
@@ -653,7 +632,7 @@ class Agent:
         published = SwarmStates(self.ids.copy(), np.asarray(own.stamp_s, float).copy(), own.pos_ned_m.copy(),
                                 own.vel_ned_mps.copy(), q.copy(), phase.copy(), flags, self.t_go_s.copy(), seq)
         return AgentOutput(sp, phase.copy(), self.assembled.copy(), self.t_go_s.copy(), valid, slot, published, seq,
-                           self.handed_over.copy())
+                           self.handed_over.copy(), self.slot_hold.drive_ned_m.copy())
 
     def _plan_times(self, t_s: float, groups: list[RefGroup]) -> tuple[np.ndarray, np.ndarray]:
         """What each row's plan says of time (and ABORT): when its centre comes to rest, when it

@@ -6,6 +6,7 @@ every Agent of the swarm builds identically from the same config.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass as plain_dataclass
 from functools import cached_property
 from typing import Literal
@@ -172,6 +173,19 @@ class SlotIntegralConfig:
     """Speed allowance of the stuck test (estimator noise near the slot), m/s."""
     dt_max_s: float = Field(default=0.2, gt=0)
     """A longer gap between plans (a stall, lost telemetry) integrates as this long."""
+    autopilot_ki_per_s3: float = Field(default=0.05, ge=0, allow_inf_nan=False)
+    """Acceleration output, on the axes where the autopilot has a velocity integrator (PX4
+    horizontal and vertical, ArduPilot horizontal): the same gated residual is also driven
+    into that integrator through the position target, so that it learns at this rate
+    (companion.slot_hold; docs/agent.md, "Whose integrator"). 0: not driven. The law's
+    stability is checked with ki_pos_per_s3 plus this (the driven axes)."""
+    drive_zone_m: float = Field(default=10.0, gt=0)
+    """The drive acts while the error is stuck and the residual within this (the agent's own
+    integral: zone_m, a still slot, unsaturated): it also unwinds an autopilot integrator
+    wound against the agent (docs/agent.md, "Whose integrator")."""
+    drive_max_m: float = Field(default=1.0, gt=0)
+    """The drive moves the position target at most this far (a silent vehicle's autopilot
+    keeps the last target: the ghost's radius must cover it)."""
 
 
 @dataclass(config=STRICT)
@@ -284,6 +298,15 @@ class MissionConfig:
     """Ground height in the mission frame (NED z, m): where a silent vehicle's column
     ends. None = unknown: the column then reaches 100 m below its last position."""
 
+    @property
+    def stability_gains(self) -> ConsensusGains:
+        """The gains the closed loop is checked with: eq. 27's with the integral rate of the
+        driven axes (the agent's plus the autopilot's: the larger, the less damped)."""
+        c = self.consensus
+        if c.ki_pos_per_s3 <= 0.0:
+            return c
+        return dataclasses.replace(c, ki_pos_per_s3=c.ki_pos_per_s3 + self.slot_integral.autopilot_ki_per_s3)
+
     @model_validator(mode="after")
     def _need_waypoint(self):
         if len(self.waypoints_ned_m) < 1:
@@ -370,7 +393,7 @@ class Mission:
         self.neighbours = topology.neighbour_table(self.weights)
         """(N, K) indices of the vehicles each one hears (-1 padded): the consensus loop
         visits only these, not all N columns of the weight matrix."""
-        self.closed_loop_eigenvalues = check_stability(self.weights, cfg.consensus)
+        self.closed_loop_eigenvalues = check_stability(self.weights, cfg.stability_gains)
         self.path = CentrePath(
             np.asarray(cfg.waypoints_ned_m, dtype=float),
             cfg.transit_speed_mps,

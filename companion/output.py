@@ -7,15 +7,19 @@ lines in both (docs/agent.md, "The output stage"):
 1. **Extrapolation.** The planner runs on some ticks only (the agent: every plan_every-th
    and its publishing ticks); in between, a state plan (position and velocity given) is
    advanced along its acceleration to now: p + v dt + a dt^2 / 2, v + a dt.
-2. **Feed-forward bound.** The acceleration sent is at most `acc_ff_max_mps2` (norm). It is
+2. **Slot-hold drive** (acceleration output, companion.slot_hold): a state plan's position
+   target is moved by the agent's drive d, so the autopilot's velocity integrator learns
+   the bias, and the pull of its P loops on d (vel_p pos_p d per axis: `set_loop`) is taken
+   out of the feed-forward, so the vehicle flies the planner's acceleration as before.
+3. **Feed-forward bound.** The acceleration sent is at most `acc_ff_max_mps2` (norm). It is
    what an autopilot keeps acting on when the companion falls silent (ArduPilot extrapolates
    velocity and acceleration for GUID_TIMEOUT; PX4 flies the last setpoint for
    COM_OF_LOSS_T), so it bounds the overshoot: v T + A T^2 / 2 (docs/agent.md).
-3. **Limits.** PX4's offboard velocity limits (companion.link.limits, the same functions the
+4. **Limits.** PX4's offboard velocity limits (companion.link.limits, the same functions the
    SITL applies to what it receives): nothing the autopilot would clamp is sent.
-4. **Geofence.** `mission.geofence`: the position is clipped into the box, and at a face the
+5. **Geofence.** `mission.geofence`: the position is clipped into the box, and at a face the
    velocity and acceleration pointing further out are zeroed.
-5. **Attitude law** (attitude output): eq. 12-16 on the companion (the geometric position law,
+6. **Attitude law** (attitude output): eq. 12-16 on the companion (the geometric position law,
    companion.control.geometric.position_law) gives the attitude and collective thrust, the
    tilt is clamped to the autopilot's limit, and the thrust is turned into the autopilot's
    SET_ATTITUDE_TARGET thrust field with the *estimated* hover thrust (`HoverThrustEstimator`:
@@ -35,6 +39,7 @@ import numpy as np
 from companion.control.geometric import position_law
 from companion.control.kernel import kernel
 from companion.frames import quat_wxyz_to_rot9, rot9_to_quat_wxyz
+from companion.link.dialects.base import PositionLoop
 from companion.link.limits import SetpointLimits, clamp_tilt_wxyz, clamp_velocity3, fence_axis
 from companion.mission import HoverThrustConfig, MissionConfig
 from companion.params import GRAVITY_MPS2
@@ -128,8 +133,8 @@ class HoverThrustEstimator:
 
 
 @kernel
-def trajectory_rows(t_s, plan_t, kind, pp, pv, pa, own_p, lim, fence, out_kind, out_p, out_v, out_a):
-    """Steps 1-4 of the module docstring for every row: the trajectory setpoint now.
+def trajectory_rows(t_s, plan_t, kind, pp, pv, pa, drive, stiff, own_p, lim, fence, out_kind, out_p, out_v, out_a):
+    """Steps 1-5 of the module docstring for every row: the trajectory setpoint now.
 
     Args:
         t_s: now, mission time, s. plan_t (n,) when each row's plan was made, s; kind (n,)
@@ -160,6 +165,14 @@ def trajectory_rows(t_s, plan_t, kind, pp, pv, pa, own_p, lim, fence, out_kind, 
             h = 0.5 * dt * dt
             p0, p1, p2 = p0 + v0 * dt + a0 * h, p1 + v1 * dt + a1 * h, p2 + v2 * dt + a2 * h
             v0, v1, v2 = v0 + a0 * dt, v1 + a1 * dt, v2 + a2 * dt
+            d0, d1, d2 = drive[i, 0], drive[i, 1], drive[i, 2]
+            if d0 != 0.0 or d1 != 0.0 or d2 != 0.0:  # the drive, and the P loops' pull on it out of the feed-forward
+                p0, p1, p2 = p0 + d0, p1 + d1, p2 + d2
+                a0, a1, a2 = a0 - stiff[i, 0] * d0, a1 - stiff[i, 1] * d1, a2 - stiff[i, 2] * d2
+                an = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+                if an > lim[3]:
+                    s = lim[3] / an
+                    a0, a1, a2 = a0 * s, a1 * s, a2 * s
         v0, v1, v2 = clamp_velocity3(v0, v1, v2, lim[0], lim[1], lim[2])
         if fence[0] > 0.0:
             p0, v0, a0 = fence_axis(p0, v0, a0, fence[1], fence[4], own_p[i, 0])
@@ -279,15 +292,31 @@ class OutputStage:
         self.out = OutputRows(np.zeros(n, np.int8), b.pos_ned_m, b.vel_ned_mps, b.acc_ned_mps2, b.yaw_rad,
                               b.yaw_rate_radps, b.att_q_wxyz, b.thrust_norm, np.full(n, np.nan))
         self._cos = np.full(n, np.nan)
+        self.drive = np.zeros((n, 3))
+        """(n, 3) the plan's slot-hold drive (AgentOutput.drive_ned_m), m."""
+        self.stiffness = np.zeros((n, 3))
+        """(n, 3) each autopilot's P-loop acceleration per metre of target offset (set_loop), 1/s^2."""
 
-    def set_plan(self, t_s: float, sp: FleetSetpoint, q_ok: np.ndarray) -> None:
+    def set_loop(self, rows, loop: PositionLoop | None) -> None:
+        """The autopilots of rows have these position loops (None: unknown, no compensation).
+        Attitude output has no autopilot position loop: nothing is kept."""
+        if not self.attitude and loop is not None:
+            self.stiffness[rows] = loop.stiffness_per_s2()
+
+    def set_plan(self, t_s: float, sp: FleetSetpoint, q_ok: np.ndarray, drive_ned_m: np.ndarray | None = None) -> None:
         """Keep the planner's setpoint (mission frame) as each row's plan from t_s.
 
         Args:
             sp: n rows (NaN = not commanded; an all-NaN row: send nothing).
             q_ok: (n,) bool, the vehicle's attitude was known when it was planned (attitude
                 output flies a state plan only then).
+            drive_ned_m: (n, 3) the slot-hold drive (AgentOutput.drive_ned_m), m; None: none.
+                Ignored in attitude output and where not finite.
         """
+        if drive_ned_m is None or self.attitude:
+            self.drive.fill(0.0)
+        else:
+            self.drive[:] = np.where(np.isfinite(drive_ned_m), drive_ned_m, 0.0)
         p, v, a = sp.pos_ned_m, sp.vel_ned_mps, sp.acc_ned_mps2
         fp, fv, fa = (np.isfinite(x).all(axis=1) for x in (p, v, a))
         state = fp & fv
@@ -312,7 +341,7 @@ class OutputStage:
         """
         o, pl = self.out, self.plan
         self.kernels.trajectory_rows(t_s, self.plan_t, self.kind, pl.pos_ned_m, pl.vel_ned_mps, pl.acc_ned_mps2,
-                                     own_pos, self.lim, self.fence, o.send, o.pos_ned_m, o.vel_ned_mps,
+                                     self.drive, self.stiffness, own_pos, self.lim, self.fence, o.send, o.pos_ned_m, o.vel_ned_mps,
                                      o.acc_ned_mps2)
         o.yaw_rad[:] = pl.yaw_rad
         o.yaw_rate_radps[:] = pl.yaw_rate_radps

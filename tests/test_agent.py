@@ -320,7 +320,7 @@ def test_integral_action_removes_a_steady_bias_that_eq27_alone_leaves():
     m = _mission(1)
     err, agent = _fly_biased(m, b)
     assert np.abs(err).max() < 0.01
-    np.testing.assert_allclose(m.cfg.consensus.ki_pos_per_s3 * agent.slot_integral_ms, b, rtol=0.03)
+    np.testing.assert_allclose(m.cfg.consensus.ki_pos_per_s3 * agent.slot_hold.z_ms, b, rtol=0.03)
 
 
 def test_integral_action_in_a_swarm_with_different_biases():
@@ -339,7 +339,7 @@ def test_integral_is_bounded_and_does_not_fight_the_repulsion():
     integral learns no bias there), with or without a bias it has learnt."""
     m = _mission(1, slot_integral={"accel_max_mps2": 0.2})
     _, agent = _fly_biased(m, np.array([[0.5, 0.0, 0.0]]), t_end=120.0)
-    np.testing.assert_allclose(m.cfg.consensus.ki_pos_per_s3 * np.linalg.norm(agent.slot_integral_ms), 0.2)
+    np.testing.assert_allclose(m.cfg.consensus.ki_pos_per_s3 * np.linalg.norm(agent.slot_hold.z_ms), 0.2)
     slot = _mission(1).slot_ned_m(-1.0)[0]
     obstacle = {"centre_ned_m": (slot[0] + 2.0, slot[1], slot[2]), "radius_m": 1.0}
     err0, _ = _fly_biased(_mission(1, obstacles=(obstacle,), consensus={"ki_pos_per_s3": 0.0}), np.zeros((1, 3)),
@@ -347,7 +347,7 @@ def test_integral_is_bounded_and_does_not_fight_the_repulsion():
     assert np.linalg.norm(err0) > 0.05  # pushed off the slot by the repulsion
     err, agent = _fly_biased(_mission(1, obstacles=(obstacle,)), np.zeros((1, 3)), t_end=60.0)
     np.testing.assert_allclose(err, err0, atol=1e-3)
-    assert np.abs(agent.slot_integral_ms).max() < 0.01
+    assert np.abs(agent.slot_hold.z_ms).max() < 0.01
     b = np.array([[0.0, 0.2, 0.1]])
     err, _ = _fly_biased(_mission(1, obstacles=(obstacle,)), b, t_end=120.0)
     np.testing.assert_allclose(err, err0, atol=0.01)  # the bias is learnt, the push is kept

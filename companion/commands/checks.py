@@ -66,7 +66,7 @@ def graph_stability(what: str, track: Track, mission: Mission) -> None:
     if len(act) == mission.n or not len(act):
         return
     try:
-        check_stability(track.weights[np.ix_(act, act)], mission.cfg.consensus)
+        check_stability(track.weights[np.ix_(act, act)], mission.cfg.stability_gains)
     except FormationUnstableError as err:
         raise CommandError(f"{what}: the consensus loop over the {len(act)} vehicles left is unstable: {err}") from None
 

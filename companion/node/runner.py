@@ -95,7 +95,7 @@ class AgentNode:
         gc.collect()
         gc.freeze()
         gc.disable()
-        self.tick.attach(self.setup.epoch_us, self.setup.hover_thrust)
+        self.tick.attach(self.setup.epoch_us, self.setup.hover_thrust, self.setup.loop)
 
     async def _supervise(self) -> None:
         """Companion HEARTBEAT at 1 Hz, autopilot-loss watchdog, statistics file.

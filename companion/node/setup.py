@@ -27,7 +27,7 @@ import time
 from collections.abc import AsyncIterator, Callable
 
 from companion.config import ConfigError
-from companion.link.dialects.base import AfterLoss, LossBehaviour
+from companion.link.dialects.base import AfterLoss, LossBehaviour, PositionLoop
 from companion.link.endpoints import Link, MavEndpoint, UdpLink, open_link, parse_url
 from companion.link.enums import MavCmd, MavComponent, MsgId
 from companion.link.signing import Signing, SigningError, TimestampStore, load_key
@@ -179,6 +179,9 @@ class Setup:
         """From node construction to the end of set-up, s (NaN: not set up)."""
         self.loss: LossBehaviour | None = None
         """What the autopilot does if this companion stops (verify_loss; None: its dialect does not say)."""
+        self.loop: PositionLoop | None = None
+        """The autopilot's position-loop gains (acceleration output; None: not read, or its
+        dialect does not say): the slot-hold integral is driven into it (companion.slot_hold)."""
 
     def swarm_bound(self) -> str:
         """The swarm socket's address as bound (the port the OS chose for --swarm-bind HOST:0)."""
@@ -301,11 +304,30 @@ class Setup:
                         if await v.get_param(name) != value:
                             await v.set_param(name, value)
                 self.loss = await self.verify_loss()
+                if cfg.output == "acceleration" and d.loop_params:
+                    self.loop = await self.read_loop()
         except CommandError as err:
             raise NodeFailure(ExitCode.SETUP, f"parameters of {self.ap_name}: {err}") from None
         self.ready_wall_s = time.monotonic() - self.start_wall
         log.info("set up in %.2f s: %s, %s, %s output at %g Hz, %s launch%s", self.ready_wall_s, self.ap_name, d.name,
                  cfg.output, cfg.rate_hz, cfg.launch, ", lockstep" if cfg.lockstep else "")
+
+    async def read_loop(self) -> PositionLoop | None:
+        """The autopilot's position-loop gains (its dialect's loop_params; one it does not answer
+        for: the autopilot's default, with a WARNING), logged on one INFO line."""
+        d = self.vehicle.ap
+        values = await self.read_params(d.loop_params, SHAPING_PARAM_TIMEOUT_S, SHAPING_PARAM_RETRIES)
+        stock = [n for n in d.loop_params if n not in values]
+        if stock:
+            log.warning("%s does not answer for %s: the slot hold assumes the %s defaults", self.ap_name,
+                        ", ".join(stock), d.name)
+        loop = d.position_loop(values)
+        if loop is not None:
+            si = self.cfg.mission.mission.slot_integral
+            log.info("position loops: %s; slot-hold drive per metre of residual N/E/D %s (0: none on that axis)",
+                     ", ".join(f"{n}={values.get(n, float('nan')):g}" for n in d.loop_params),
+                     "/".join(f"{c:.3g}" for c in loop.drive_gain(si.autopilot_ki_per_s3)))
+        return loop
 
     # ------------------------------------------------------------------ companion loss
     async def read_params(self, names: tuple[str, ...], timeout_s: float, retries: int) -> dict[str, float]:

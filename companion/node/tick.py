@@ -23,6 +23,7 @@ import numpy as np
 from companion.agent import FORMATION_PHASES, Agent, OwnState, Phase
 from companion.control.geometric import pack_control_params
 from companion.link.dialects import Mode
+from companion.link.dialects.base import PositionLoop
 from companion.link.enums import MavCmd, MavComponent, MavFrame, MavLandedState, MsgId
 from companion.link.limits import SetpointLimits
 from companion.link.setpoints import attitude_target_fields, position_target_fields
@@ -106,15 +107,18 @@ class TickPath:
         self._attitude_target = codec.builder(MsgId.SET_ATTITUDE_TARGET)
         self._tick_marker = codec.builder(MsgId.SWARMDROP_TICK)
 
-    def attach(self, epoch_us: int, hover_thrust: float) -> None:
+    def attach(self, epoch_us: int, hover_thrust: float, loop: PositionLoop | None = None) -> None:
         """Start ticking: in lockstep, declare this a lockstep companion (a SWARMDROP_TICK of
         time 0) before the SITL's clock may start, then send the first companion HEARTBEAT
         (a fleet SITL starts its clock once every vehicle's companion has sent one).
 
         Args:
             epoch_us: Unix time of mission time 0, µs. hover_thrust: the autopilot's (NaN: unknown).
+            loop: its position loops (acceleration output; None: unknown): the slot hold drives them.
         """
         self.epoch_us = epoch_us
+        self.agent.set_autopilot_loop([0], loop)
+        self.output.set_loop([0], loop)
         if hover_thrust == hover_thrust:
             self.output.hover.set_param(0, hover_thrust)
         if self.cfg.lockstep:
@@ -264,7 +268,7 @@ class TickPath:
         if phase != self.phase:
             log.info("phase %s -> %s at t=%.2f s", self.phase.name, phase.name, t)
             self.phase = phase
-        self.output.set_plan(t, out.setpoint, np.isfinite(q).all(keepdims=True))
+        self.output.set_plan(t, out.setpoint, np.isfinite(q).all(keepdims=True), out.drive_ned_m)
         self.planned = True
 
     def _relay(self, t: float) -> None:

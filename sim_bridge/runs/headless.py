@@ -29,6 +29,7 @@ from companion import frames
 from companion.agent import Agent, OwnState, Phase
 from companion.config import ConfigError
 from companion.control.geometric import pack_setpoint
+from companion.link.dialects.base import PositionLoop
 from companion.link.limits import SetpointLimits
 from companion.mission import Mission
 from companion.output import output_stage_for
@@ -162,7 +163,10 @@ def run_batch(cfgs: list[ScenarioConfig], progress: bool = False, clock=None,
     # The agent's output stage (companion.output): the same lines as `swarmdrop agent`'s tick.
     output = output_stage_for(cfg.mission, n * n_runs, limits=SetpointLimits(), kernels=output_kernels())
     view = SwarmView.unknown(n * n_runs, n, receive_kernel=compiled(receive_rows))
-    autopilot = _autopilot_model(cfgs, n)
+    autopilot, loops = _autopilot_model(cfgs, n)
+    for row, loop in enumerate(loops):  # what `swarmdrop agent` reads from its autopilot at set-up
+        agent.set_autopilot_loop([row], loop)
+        output.set_loop([row], loop)
     dt_agent = 1.0 / cfg.agent.rate_hz
     sub_steps = int(round(cfg.physics.rate_hz / cfg.agent.rate_hz))
     log_every = int(round(cfg.agent.rate_hz / cfg.output.log_rate_hz))
@@ -221,7 +225,7 @@ def run_batch(cfgs: list[ScenarioConfig], progress: bool = False, clock=None,
         published = out.published.select(publish_all[offset]) if per_run else None
         for observe in TICK_OBSERVERS:
             observe(t, published)
-        output.set_plan(t, out.setpoint, q_known)
+        output.set_plan(t, out.setpoint, q_known, out.drive_ned_m)
         output.step(t, own.pos_ned_m, own.vel_ned_mps, own.att_q_wxyz)
         sp = autopilot.setpoint(state, output.setpoint, t)
         autopilot.detect_landing(t, state)
@@ -273,10 +277,12 @@ def run_batch(cfgs: list[ScenarioConfig], progress: bool = False, clock=None,
     return results
 
 
-def _autopilot_model(cfgs: list[ScenarioConfig], n: int) -> AutopilotModel:
+def _autopilot_model(cfgs: list[ScenarioConfig], n: int) -> tuple[AutopilotModel, list[PositionLoop | None]]:
     """The stand-in for the autopilot the scenarios name (autopilot.name): its SITL
     behaviour's default parameter table gives the position loops' gains and the loss
-    behaviour; each vehicle's hover-thrust parameter is off by its run's draw.
+    behaviour; each vehicle's hover-thrust parameter is off by its run's draw. Also each
+    row's position loops as the agent's dialect reads them from that table (what
+    `swarmdrop agent` reads from its autopilot at set-up).
 
     Raises:
         ConfigError: no SITL behaviour has that name (its gains and parameters are unknown).
@@ -290,16 +296,18 @@ def _autopilot_model(cfgs: list[ScenarioConfig], n: int) -> AutopilotModel:
     model = AutopilotModel.docked(n * len(cfgs), cfg.physics.ground_z_m)
     model.upright_first = behaviour.throw_uprights_first
     loss = None
+    loops: list[PositionLoop | None] = []
     for r, c in enumerate(cfgs):
         errors = hover_thrust_errors(c.autopilot.hover_thrust_error, n, c.seed)
         for k in range(n):
             table = ParamTable(behaviour.param_specs(c.inner_loop, k + 1, min(0.95, hover * (1.0 + errors[k]))),
                                behaviour.dialect.param_encoding)
             model.loop.set_gains(r * n + k, behaviour.position_loop(table, hover))
+            loops.append(behaviour.dialect.position_loop({p: table[p] for p in behaviour.dialect.loop_params}))
             loss = loss or behaviour.loss_behaviour(table)
     if loss is not None:
         model.loss = loss
-    return model
+    return model, loops
 
 
 def _phase_summary(phase: np.ndarray) -> str:
