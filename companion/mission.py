@@ -173,7 +173,7 @@ class SlotIntegralConfig:
     """Speed allowance of the stuck test (estimator noise near the slot), m/s."""
     dt_max_s: float = Field(default=0.2, gt=0)
     """A longer gap between plans (a stall, lost telemetry) integrates as this long."""
-    autopilot_ki_per_s3: float = Field(default=0.05, ge=0, allow_inf_nan=False)
+    autopilot_ki_per_s3: float = Field(default=0.1, ge=0, allow_inf_nan=False)
     """Acceleration output, on the axes where the autopilot has a velocity integrator (PX4
     horizontal and vertical, ArduPilot horizontal): the same gated residual is also driven
     into that integrator through the position target, so that it learns at this rate
