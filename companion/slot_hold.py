@@ -19,8 +19,13 @@ integrator"). Both places that can, do, on one gated residual r (`update`):
   integrator saw only the lead of the state setpoint and its anti-windup's leak).
 
 The total rate on a driven axis is their sum; Mission checks the law's stability with it
-(MissionConfig.stability_gains). The gating (SlotIntegralConfig) keeps transients, a
-neighbour's lag and an obstacle's push out of both.
+(MissionConfig.stability_gains). r itself leaves out what eq. 27's consensus term and
+eq. 30's repulsion ask of the vehicle, so neither learns a neighbour's lag or an obstacle's
+push. The agent's integral grows only near a still slot, unsaturated, with the error stuck
+(SlotIntegralConfig); the drive needs only the error stuck within drive_zone_m, also in
+transit: PX4's horizontal anti-windup winds its integrator against a sustained
+feed-forward while the vertical demand points down, and the drive is what unwinds it
+(docs/agent.md, "Whose integrator").
 """
 from __future__ import annotations
 
