@@ -47,26 +47,29 @@ class SlotIntegral:
     def __init__(self, cfg: MissionConfig, n: int):
         self.cfg = cfg
         self.z_ms = np.zeros((n, 3))
-        """(n, 3) the agent's own integral of each vehicle's slot residual, m s (its axes
-        without a drive); kept across phases: it is a property of the vehicle (its bias)."""
+        """(n, 3) the agent's own integral of each vehicle's slot residual, m s (every axis);
+        kept across phases: it is a property of the vehicle (its bias)."""
         self.drive_gain = np.zeros((n, 3))
-        """(n, 3) metres of drive per metre of residual, per axis (0: the agent integrates
-        that axis itself); set_autopilot_loop."""
+        """(n, 3) metres of drive per metre of residual, per axis (0: no autopilot integrator
+        is driven on that axis); set_autopilot_loop."""
+        self._drives = False
+        """Some row has a drive gain (else update skips the drive: attitude output, unknown loops)."""
         self.drive_ned_m = np.zeros((n, 3))
         """(n, 3) this step's drive: the offset of the position target from the lead state,
         NED m (0 where none)."""
 
     def set_autopilot_loop(self, rows, loop: PositionLoop | None) -> None:
         """The autopilot of rows has these position loops (acceleration output with state
-        setpoints only: the caller decides). None: unknown, the agent integrates every axis.
-        What the agent learnt before on an axis it hands over stays commanded; only new
-        learning goes to the autopilot."""
+        setpoints only: the caller decides). None: unknown, nothing is driven (the agent's
+        own integral acts on every axis either way)."""
         ki = self.cfg.slot_integral.autopilot_ki_per_s3 if self.cfg.consensus.ki_pos_per_s3 > 0 else 0.0
         self.drive_gain[rows] = (0.0, 0.0, 0.0) if loop is None or ki <= 0 else loop.drive_gain(ki)
+        self._drives = bool(self.drive_gain.any())
 
     def update(self, dt_s: float, rows: np.ndarray, p: np.ndarray, v: np.ndarray, h_pos: np.ndarray,
                h_vel: np.ndarray, resid: np.ndarray, u1: np.ndarray, u2: np.ndarray) -> None:
-        """One plan step: integrate (or drive) the residual where it may grow, then u1 -= k_i z.
+        """One plan step: integrate the residual where it may grow and drive it where the
+        drive's gate is open, then u1 -= k_i z.
 
         The residual r is the law's position residual (consensus_rows' resid: the slot error
         less what the consensus term asks of the vehicle for its neighbours) plus the repulsion
@@ -107,7 +110,7 @@ class SlotIntegral:
             # feed-forward by its own anti-windup (docs/agent.md, "Whose integrator"): both are
             # for the integrator to take out.
             go = stuck & (r2 < si.drive_zone_m ** 2)
-            if go.any():
+            if self._drives and go.any():
                 d = -self.drive_gain[rows[go]] * r[go]  # (r points from the slot to the vehicle: slot-wards)
                 dn = np.sqrt(np.einsum("ij,ij->i", d, d))
                 drive[go] = d * np.minimum(1.0, si.drive_max_m / np.maximum(dn, 1e-300))[:, None]
