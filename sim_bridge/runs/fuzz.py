@@ -1,7 +1,7 @@
 """`python -m sim_bridge.runs.fuzz`: mutated and hostile MAVLink against every port we open.
 
 One run starts a SITL (6 vehicles, carrier launch, the GCS endpoint, the radio) and one
-agent process (vehicle 0, flying configs/small_6.yaml), and with `console` (`make fuzz`) an
+agent process (vehicle 0, flying configs/small_6.yaml; the fuzz waits until it is set up), and with `console` (`make fuzz`) an
 operator's console (`swarmdrop console`, listening on a swarm port and a GCS port), then
 sends seeded frames, paced, round-robin to: SITL vehicles 0-2, the SITL's GCS endpoint, the
 agent's autopilot port and its swarm port, and the console's swarm and GCS ports.
@@ -295,6 +295,22 @@ def _write_mission(out_dir: Path) -> Path:
     return path
 
 
+def _wait_ready(proc: subprocess.Popen, log: Path, marker: str, what: str, timeout_s: float = 60.0) -> None:
+    """Poll `log` until it holds `marker` (the process's ready line).
+
+    Raises:
+        RuntimeError: `proc` exited or `timeout_s` passed first (the log's tail says why); the
+            process is stopped.
+    """
+    deadline = time.monotonic() + timeout_s
+    while not log.exists() or marker not in log.read_text(errors="replace"):
+        if proc.poll() is not None or time.monotonic() > deadline:
+            terminate_all((proc,))
+            tail = log.read_text(errors="replace")[-2000:] if log.exists() else "(no log)"
+            raise RuntimeError(f"{what} did not start:\n" + tail)
+        time.sleep(0.05)  # (polling its log for the ready line)
+
+
 def _start_console(py: str, mission: Path, swarm: int, gcs: int, out_dir: Path) -> subprocess.Popen:
     """`swarmdrop console` on a swarm port and a GCS port (its page on a free port), ready.
 
@@ -305,12 +321,31 @@ def _start_console(py: str, mission: Path, swarm: int, gcs: int, out_dir: Path) 
     proc = subprocess.Popen([py, "-m", "swarmdrop.cli", "console", "--mission", str(mission), "--swarm-bind",
                              f"127.0.0.1:{swarm}", "--gcs", f"udpin://127.0.0.1:{gcs}", "--port", "0"], cwd=ROOT,
                             stdout=open(log, "w"), stderr=subprocess.STDOUT)
-    deadline = time.monotonic() + 60.0
-    while "CONSOLE READY" not in log.read_text(errors="replace"):
-        if proc.poll() is not None or time.monotonic() > deadline:
-            terminate_all((proc,))
-            raise RuntimeError("the console did not start:\n" + log.read_text(errors="replace")[-2000:])
-        time.sleep(0.05)  # (polling its log for the ready line)
+    _wait_ready(proc, log, "CONSOLE READY", "the console")
+    return proc
+
+
+def _start_agent(py: str, mission: Path, autopilot: int, swarm: int, medium: int, out_dir: Path) -> subprocess.Popen:
+    """`swarmdrop agent` for vehicle 0, set up (its autopilot heard, parameters read).
+
+    The fuzz starts only then: like PX4, the SITL fixes a vehicle's reply address at first
+    contact, so a fuzzer that spoke first would own vehicle 0's link and the agent would never
+    hear its autopilot (a run that fuzzes an agent waiting for a HEARTBEAT tests little).
+    It sets Hold as the loss action, as the fleet does: the SITL boots with PX4's stock
+    COM_OBL_RC_ACT 0, which the agent refuses (exit 4).
+
+    Raises:
+        RuntimeError: the agent exited or was not set up within 60 s (its log's tail says why).
+    """
+    log = out_dir / "agent.log"
+    log.unlink(missing_ok=True)  # the agent appends to its log: an earlier run's ready line must not count
+    proc = subprocess.Popen([py, "-m", "swarmdrop.cli", "agent", "--vehicle-id", "0", "--autopilot",
+                             f"udpin://127.0.0.1:{autopilot}", "--mission", str(mission), "--swarm-bind",
+                             f"127.0.0.1:{swarm}", "--swarm-peer", f"127.0.0.1:{medium}", "--log-file", str(log),
+                             "--no-stderr-log", "--set-loss-action", "hold", "--stats",
+                             str(out_dir / "agent.json")],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=open(out_dir / "agent.stderr", "w"))
+    _wait_ready(proc, log, "set up in", "the agent")
     return proc
 
 
@@ -354,12 +389,7 @@ def run(frames: int, seed: int, out_dir: Path, rate_hz: float = 12000.0, quiet: 
         gcs_line = re.search(r"gcs \(all vehicles\): udp [\d.]+:(\d+)", "".join(lines))
         assert gcs_line is not None  # (with --gcs the SITL prints this line before SITL READY)
         gcs_port = int(gcs_line.group(1))
-        agent_log = out_dir / "agent.log"
-        agent = subprocess.Popen([py, "-m", "swarmdrop.cli", "agent", "--vehicle-id", "0", "--autopilot",
-                                  f"udpin://127.0.0.1:{remote}", "--mission", str(mission), "--swarm-bind",
-                                  f"127.0.0.1:{swarm}", "--swarm-peer", f"127.0.0.1:{medium}", "--log-file",
-                                  str(agent_log), "--no-stderr-log"], cwd=ROOT, stdout=subprocess.DEVNULL,
-                                 stderr=open(out_dir / "agent.stderr", "w"))
+        agent = _start_agent(py, mission, remote, swarm, medium, out_dir)
         if console:
             console_proc = _start_console(py, mission, console_swarm, console_gcs, out_dir)
         watch = Watch(remote, {k: local + k for k in WATCHED})
