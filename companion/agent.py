@@ -41,7 +41,7 @@ from companion.control.apf import clip_sum_rows, pair_repulsion_rows, segment_re
 from companion.control.formation import consensus_rows, gains_vector
 from companion.control.kernel import kernel
 from companion.link.dialects.base import PositionLoop
-from companion.mission import Mission
+from companion.mission import ApfConfig, Mission
 from companion.slot_hold import SlotIntegral
 from companion.state import FleetSetpoint
 from companion.swarm import (
@@ -77,6 +77,13 @@ _LAUNCH, _STABILISE, _ASSEMBLE, _TRANSIT, _HOVER, _LAND, _FAILED = (int(p) for p
 IN_FORMATION = np.isin(np.arange(len(Phase)), [int(p) for p in FORMATION_PHASES])  # lookup by phase value
 GHOST_COLUMN_M = 100.0
 """Depth of a silent vehicle's column when the ground height is unknown."""
+
+
+def _repel_cutoff_m(a: ApfConfig) -> float:
+    """How far a vehicle looks for others to be repelled by, m: the influence distance, or
+    everything sensed when closing speeds count (a pair closing in from further away may be
+    within the influence distance once braked; apf.pair_repulsion_rows)."""
+    return a.sensing_radius_m if a.closing_decel_mps2 > 0 else min(a.sensing_radius_m, a.vehicle_influence_m)
 
 
 def _norm_rows(a: np.ndarray) -> np.ndarray:
@@ -446,9 +453,9 @@ class Agent:
         n_veh = view.n_vehicles
         pred = np.empty((n_rows, n_veh, 3))
         usable, repel, ghost = (np.empty((n_rows, n_veh), np.bool_) for _ in range(3))
+        cutoff = _repel_cutoff_m(a)
         kern.neighbour_sets_rows(rows, ids, p, view.pos_ned_m, view.vel_ned_mps, view.flags, view.phase, age,
-                                 sw.stale_after_s, IN_FORMATION, min(a.sensing_radius_m, a.vehicle_influence_m),
-                                 pred, usable, repel, ghost)
+                                 sw.stale_after_s, IN_FORMATION, cutoff, pred, usable, repel, ghost)
         # Every own row flies formation (the usual case): the view's arrays, not row copies.
         whole = n_rows == view.n_receivers
         vv = view.vel_ned_mps if whole else view.vel_ned_mps[rows]
@@ -458,14 +465,14 @@ class Agent:
         u2 = np.zeros((n_rows, 3))
         if cfg.launch == "ground":  # neighbours still on the ground or taking off: their columns
             self._takeoff_columns(rows, p, view, age, ids, whole, repel, u2)
-        kern.pair_repulsion_rows(p, pred, repel, ids, a.vehicle_gain_mps2, a.vehicle_influence_m,
-                                 min(a.sensing_radius_m, a.vehicle_influence_m), a.kappa, u2)
+        kern.pair_repulsion_rows(p, v, pred, vv, repel, ids, a.vehicle_gain_mps2, a.vehicle_influence_m, cutoff,
+                                 a.kappa, a.closing_decel_mps2, u2)
         if ghost.any():
             top, bottom = self._ghost_columns(view.pos_ned_m if whole else view.pos_ned_m[rows], vv)
             kern.segment_repulsion_rows(p, top, bottom, np.full(ghost.shape, sw.ghost_radius_m), ghost,
                                         a.vehicle_gain_mps2, a.vehicle_influence_m, a.kappa, u2)
         if view.intruders is not None:  # (an identity conflict has been heard: rare)
-            self._repel_intruders(rows, p, view.intruders, view.intruders.age_s(t_s), u2)
+            self._repel_intruders(rows, p, v, view.intruders, view.intruders.age_s(t_s), u2)
         if self._n_obstacles:
             kern.segment_repulsion_rows(p, self._obs_ends[:n_rows], self._obs_ends[:n_rows], self._obs_r[:n_rows],
                                         self._obs_use[:n_rows], a.obstacle_gain_mps2, a.obstacle_influence_m, a.kappa,
@@ -504,13 +511,13 @@ class Agent:
         self.kernels.segment_repulsion_rows(p, top, pos, np.full(col.shape, sw.ghost_radius_m), col,
                                             a.vehicle_gain_mps2, a.vehicle_influence_m, a.kappa, u2)
 
-    def _repel_intruders(self, rows: np.ndarray, p: np.ndarray, it: Intruders, age: np.ndarray,
+    def _repel_intruders(self, rows: np.ndarray, p: np.ndarray, v: np.ndarray, it: Intruders, age: np.ndarray,
                          u2: np.ndarray) -> None:
         """Senders that claim an own vehicle's id (identity conflicts, docs/swarm.md) repel it
         as vehicles do, by the neighbours' rules: a fresh, valid, airborne one at its predicted
         position within the sensing radius, a silent one as a ghost column. Adds into u2 (R, 3).
 
-        Args: rows (R,) own rows; p (R, 3) their positions; it: the view's intruders;
+        Args: rows (R,) own rows; p, v (R, 3) their positions and velocities; it: the view's intruders;
             age (n, K) of every intruder slot, s (inf where unused).
         """
         sw, a, kern = self.mission.cfg.swarm, self.mission.cfg.apf, self.kernels
@@ -518,11 +525,11 @@ class Agent:
         nobody = np.full(n_rows, -1, np.int64)  # no slot is the own vehicle; coincidence pushes north
         pred = np.empty((n_rows, k, 3))
         usable, repel, ghost = (np.empty((n_rows, k), np.bool_) for _ in range(3))
-        cutoff = min(a.sensing_radius_m, a.vehicle_influence_m)
+        cutoff = _repel_cutoff_m(a)
         kern.neighbour_sets_rows(rows, nobody, p, it.pos_ned_m, it.vel_ned_mps, it.flags, it.phase, age,
                                  sw.stale_after_s, IN_FORMATION, cutoff, pred, usable, repel, ghost)
-        kern.pair_repulsion_rows(p, pred, repel, nobody, a.vehicle_gain_mps2, a.vehicle_influence_m, cutoff,
-                                 a.kappa, u2)
+        kern.pair_repulsion_rows(p, v, pred, it.vel_ned_mps[rows], repel, nobody, a.vehicle_gain_mps2,
+                                 a.vehicle_influence_m, cutoff, a.kappa, a.closing_decel_mps2, u2)
         if ghost.any():
             top, bottom = self._ghost_columns(it.pos_ned_m[rows], it.vel_ned_mps[rows])
             kern.segment_repulsion_rows(p, top, bottom, np.full(ghost.shape, sw.ghost_radius_m), ghost,

@@ -83,11 +83,19 @@ class ApfConfig:
     repulsive accelerations, influence distances set where the field vanishes."""
 
     kappa: float = Field(default=3.0, gt=0)
-    vehicle_gain_mps2: float = Field(default=6.0, ge=0)
+    vehicle_gain_mps2: float = Field(default=8.0, ge=0)
+    """K4, the push from one vehicle at contact, m/s^2. 8: at the 1 m separation the push
+    (8 psi(1/4) = 3.6 m/s^2 with the defaults) beats the consensus bound (3 m/s^2), so the
+    formation law alone cannot press a vehicle into a neighbour that does not give way (one
+    still recovering from its launch); with 6 it could, to 0.8 m (docs/formation.md)."""
     vehicle_influence_m: float = Field(default=4.0, gt=0)
     sensing_radius_m: float = Field(default=10.0, gt=0)
     obstacle_gain_mps2: float = Field(default=10.0, ge=0)
     obstacle_influence_m: float = Field(default=8.0, gt=0)
+    closing_decel_mps2: float = Field(default=1.5, ge=0)
+    """A pair of vehicles closing in is repelled as if already as close as it will be once
+    braked at this deceleration, m/s^2 (docs/formation.md, "Closing speed"); 0: eq. 30 as
+    printed (position only). A pair that keeps its distance is pushed as eq. 30 says either way."""
 
 
 @dataclass(config=STRICT)

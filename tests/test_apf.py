@@ -150,3 +150,65 @@ def test_input_validation():
         obstacle_repulsion(np.zeros((1, 3)), np.zeros((1, 3)), [-1.0], 1.0, 1.0, 1.0)
     with pytest.raises(ValueError):
         psi(0.5, np.inf)
+
+
+# ---------------------------------------------------------------- closing speed (docs/formation.md)
+def _push(d_m, vel_mps, decel, gain=8.0, infl=4.0, sensing=10.0):
+    """Push on a vehicle at (d, 0, 0) flying vel, from a body at rest at the origin."""
+    return vehicle_repulsion(np.array([[d_m, 0.0, 0.0]]), np.zeros((1, 3)), gain, infl, sensing, KAPPA,
+                             vel_ned_mps=np.array([vel_mps], float), closing_decel_mps2=decel)[0]
+
+
+def test_closing_pair_is_pushed_as_if_already_braked():
+    gain, infl, decel = 8.0, 4.0, 1.5
+    for d, c in ((3.0, 1.0), (2.0, 1.5), (5.0, 3.0), (1.2, 0.4)):
+        d_eff = max(d - c * c / (2 * decel), 0.0)
+        want = gain * psi(d_eff / infl, KAPPA)
+        np.testing.assert_allclose(_push(d, (-c, 0.0, 0.0), decel), [want, 0, 0], rtol=1e-12, atol=1e-12)
+    # closing from beyond the influence distance: pushed before it is within it
+    assert _push(5.0, (-3.0, 0.0, 0.0), decel)[0] > 0.0 and _push(5.0, (-3.0, 0.0, 0.0), 0.0)[0] == 0.0
+
+
+def test_a_pair_that_keeps_its_distance_or_parts_gets_eq30_as_printed():
+    gain, infl = 8.0, 4.0
+    for d in (0.5, 1.5, 3.0):
+        plain = gain * psi(d / infl, KAPPA)
+        for vel in ((0.0, 0.0, 0.0), (2.0, 0.0, 0.0), (0.0, 3.0, 0.0), (np.nan, 0.0, 0.0)):
+            np.testing.assert_allclose(_push(d, vel, 1.5), [plain, 0, 0], rtol=1e-12)
+        np.testing.assert_allclose(_push(d, (-2.0, 0.0, 0.0), 0.0), [plain, 0, 0], rtol=1e-12)
+    with pytest.raises(ValueError, match="closing_decel_mps2"):
+        _push(1.0, (0, 0, 0), -1.0)
+
+
+def test_closing_speed_damps_a_vehicle_pulled_at_a_neighbour_that_does_not_give_way():
+    """A vehicle pulled straight at a neighbour at rest (e.g. one still recovering from its
+    launch) by a steady consensus term u1, arriving at the influence distance at up to 2.5 m/s
+    (double integrator, the command bounded as the output stage bounds it). Eq. 30 alone is a
+    conservative field: nothing damps the approach and the vehicle is carried through. With
+    the closing speed judged (defaults), half the consensus bound stops it beyond the 1 m
+    separation, and the full bound, straight at the neighbour, beyond 0.7 m."""
+    from companion.feasibility import SEPARATION_M
+    from companion.mission import ApfConfig, MissionConfig, SetpointConfig
+
+    a = ApfConfig()
+    u1_max = MissionConfig.__pydantic_fields__["consensus_accel_max_mps2"].default
+    ff_max = SetpointConfig().acc_ff_max_mps2
+    # at rest, the push at the separation beats the consensus bound
+    assert a.vehicle_gain_mps2 * psi(SEPARATION_M / a.vehicle_influence_m, a.kappa) > u1_max
+
+    def closest(decel: float, u1: float, v0: float) -> float:
+        x, v, dt, d_min = a.vehicle_influence_m, v0, 0.005, np.inf
+        for _ in range(int(12.0 / dt)):
+            u2 = vehicle_repulsion(np.array([[x, 0.0, 0.0]]), np.zeros((1, 3)), a.vehicle_gain_mps2,
+                                   a.vehicle_influence_m, a.sensing_radius_m, a.kappa,
+                                   vel_ned_mps=np.array([v, 0.0, 0.0]), closing_decel_mps2=decel)[0, 0]
+            u = float(np.clip(-u1 + u2, -ff_max, ff_max))
+            v += u * dt
+            x += v * dt
+            d_min = min(d_min, x)
+        return d_min
+
+    for v0 in (0.0, -1.0, -2.5):
+        assert closest(a.closing_decel_mps2, 0.5 * u1_max, v0) > SEPARATION_M
+        assert closest(a.closing_decel_mps2, u1_max, v0) > 0.7
+    assert closest(0.0, u1_max, 0.0) < 0.0  # eq. 30 alone: carried through

@@ -90,6 +90,9 @@ def vehicle_repulsion(
     kappa: float,
     self_index: np.ndarray | None = None,
     query_index: np.ndarray | None = None,
+    vel_ned_mps: np.ndarray | None = None,
+    others_vel_ned_mps: np.ndarray | None = None,
+    closing_decel_mps2: float = 0.0,
 ) -> np.ndarray:
     """Inter-vehicle repulsion, first term of eq. 30 (normalised, repulsive).
 
@@ -124,6 +127,10 @@ def vehicle_repulsion(
             entry is skipped), or -1 / None if it is not in others_pos.
         query_index: (N,) global indices of the query vehicles, for the
             coincidence tie-break only; default self_index.
+        vel_ned_mps, others_vel_ned_mps: (N, 3) and (M, 3) velocities, m/s (default at
+            rest); only closing_decel_mps2 > 0 uses them.
+        closing_decel_mps2: judge a closing pair by its distance once braked at this
+            deceleration (pair_repulsion_rows), m/s^2, >= 0; 0 (default): eq. 30 as printed.
 
     Returns:
         (N, 3) repulsive acceleration, NED m/s^2.
@@ -141,13 +148,22 @@ def vehicle_repulsion(
         raise ValueError("pos_ned_m has non-finite entries")
     self_idx = np.full(n, -1) if self_index is None else np.broadcast_to(np.asarray(self_index, dtype=int), (n,))
     qidx = self_idx if query_index is None else np.broadcast_to(np.asarray(query_index, dtype=int), (n,))
-    cutoff = min(sensing_radius_m, influence_radius_m)
+    decel = float(closing_decel_mps2)
+    if not (np.isfinite(decel) and decel >= 0):
+        raise ValueError(f"closing_decel_mps2 must be finite and >= 0, got {closing_decel_mps2!r}")
+    # A closing body further than the influence distance may already be within it once
+    # braked: with closing speeds judged, everything sensed is looked at.
+    cutoff = sensing_radius_m if decel > 0 else min(sensing_radius_m, influence_radius_m)
+    vel = np.zeros((n, 3)) if vel_ned_mps is None else np.broadcast_to(np.asarray(vel_ned_mps, float), (n, 3))
+    qvel = np.zeros((m, 3)) if others_vel_ned_mps is None else np.broadcast_to(
+        np.asarray(others_vel_ned_mps, float), (m, 3))
     if not np.isfinite(kappa):
         raise ValueError(f"kappa must be finite, got {kappa!r}")
     use = np.all(np.isfinite(q), axis=1)[None, :] & (np.arange(m)[None, :] != self_idx[:, None])
     out = np.zeros((n, 3))
-    pair_repulsion_rows(p, np.broadcast_to(q, (n, m, 3)), use, qidx.astype(np.int64), float(gain_mps2),
-                        float(influence_radius_m), float(cutoff), float(kappa), out)
+    pair_repulsion_rows(p, np.ascontiguousarray(vel), np.broadcast_to(q, (n, m, 3)),
+                        np.broadcast_to(qvel, (n, m, 3)), use, qidx.astype(np.int64), float(gain_mps2),
+                        float(influence_radius_m), float(cutoff), float(kappa), decel, out)
     return out
 
 
@@ -165,15 +181,24 @@ def _psi_scalar(dbar: float, kappa: float) -> float:
 
 
 @kernel
-def pair_repulsion_rows(p, q, use, qidx, gain, infl, cutoff, kappa, out):
+def pair_repulsion_rows(p, v, q, qv, use, qidx, gain, infl, cutoff, kappa, decel, out):
     """Vehicle repulsion of eq. 30 added into out (n, 3), each row i with its own view.
+
+    With decel > 0 a pair that closes in is pushed as if it were already as close as it
+    will be once braked at decel (docs/formation.md, "Closing speed"): psi is taken at
+    d - c^2 / (2 decel) (at least 0), c = -(x_i - x_j).(v_i - v_j) / d the closing speed,
+    instead of at d. A pair that keeps its distance or parts (c <= 0) gets eq. 30 as
+    printed, so a formation that flies together is pushed exactly as the paper's.
 
     Args (arrays indexed element by element, so one vehicle interpreted and a fleet
     compiled both stay cheap):
-        p: (n, 3) query positions; q: (n, M, 3) other bodies as row i knows them;
+        p: (n, 3) query positions, m; v: (n, 3) their velocities, m/s;
+        q: (n, M, 3) other bodies as row i knows them, m; qv: (n, M, 3) their velocities, m/s;
         use: (n, M) bool, body j counts for row i (known, airborne, not itself);
         qidx: (n,) global index of each query vehicle (coincidence tie-break only);
-        gain, infl, cutoff, kappa: as vehicle_repulsion.
+        gain, infl, cutoff, kappa: as vehicle_repulsion (bodies at cutoff or further are
+            not perceived); decel: the braking the closing speed is judged by, m/s^2
+            (0: eq. 30 alone).
     """
     for i in range(p.shape[0]):
         px, py, pz = p[i, 0], p[i, 1], p[i, 2]
@@ -184,7 +209,15 @@ def pair_repulsion_rows(p, q, use, qidx, gain, infl, cutoff, kappa, out):
             d = math.sqrt(dx * dx + dy * dy + dz * dz)
             if not d < cutoff:  # also skips a NaN distance
                 continue
-            mag = gain * _psi_scalar(d / infl, kappa)
+            de = d
+            if decel > 0.0 and d >= 1e-9:
+                close = -(dx * (v[i, 0] - qv[i, j, 0]) + dy * (v[i, 1] - qv[i, j, 1])
+                          + dz * (v[i, 2] - qv[i, j, 2])) / d
+                if close > 0.0:  # (a NaN velocity compares False: eq. 30 alone)
+                    de = max(d - close * close / (2.0 * decel), 0.0)
+            if not de < infl:
+                continue
+            mag = gain * _psi_scalar(de / infl, kappa)
             if d < 1e-9:
                 sign = 1.0 if (qidx[i] < 0 or qidx[i] > j) else -1.0
                 out[i, 0] += sign * mag * TIE_BREAK_DIR_NED[0]
