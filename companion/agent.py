@@ -400,7 +400,7 @@ class Agent:
         and every vehicle heard within peer_timeout_s report assembled, and either all
         N have been heard so, or that has held for go_wait_s; or, so that no vehicle that
         is heard but cannot assemble holds the swarm hostage, once this vehicle is assembled,
-        every vehicle it still awaits has been in a formation phase (trying to assemble) for
+        every vehicle it still awaits has been airborne (recovering or trying to assemble) for
         go_stall_s, and at least go_quorum of the vehicles heard are assembled (GoDecision
         says which were left waiting)."""
         sw, n_veh = self.mission.cfg.swarm, self.mission.n
@@ -421,10 +421,12 @@ class Agent:
         self.go_ready_since_s = np.where(cond, np.fmin(self.go_ready_since_s, t_s), np.nan)
         everyone = np.sum((alive & asm) | failed, axis=1) == n_veh
         propose = pending & cond & (everyone | (t_s - self.go_ready_since_s >= sw.go_wait_s - 1e-9))
-        # The stall clock runs while every vehicle still awaited is trying to assemble (in a
-        # formation phase): one docked or recovering is coming, one in ASSEMBLE may be stuck.
-        trying = view.phase >= _ASSEMBLE
-        trying[r, ids] = self.phase >= _ASSEMBLE
+        # The stall clock runs while every vehicle still awaited has left the carrier or the
+        # ground (recovering or assembling): one docked is coming; one that recovers or
+        # assembles for go_stall_s may be stuck (a biased estimate or steady wind can hold a
+        # vehicle's tilt or speed outside the stabilisation test for ever).
+        trying = view.phase >= _STABILISE
+        trying[r, ids] = self.phase >= _STABILISE
         stuck_only = own_ok & np.all(asm | ~alive | trying, axis=1)
         self.go_stall_since_s = np.where(stuck_only, np.fmin(self.go_stall_since_s, t_s), np.nan)
         n_alive, n_ready = np.sum(alive, axis=1), np.sum(alive & asm, axis=1)

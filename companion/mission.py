@@ -102,7 +102,12 @@ class ApfConfig:
 class PhaseConfig:
     """Explicit phase-transition thresholds (docs/agent.md)."""
 
-    stable_tilt_deg: float = Field(default=5.0, gt=0)
+    stable_tilt_deg: float = Field(default=15.0, gt=0)
+    """Tilt under which a recovered vehicle counts as calm, deg. A vehicle that holds its
+    place in steady wind, or against its estimator's tilt error, hovers tilted: at 5 deg
+    (0.87 m/s^2 to hold) a 3-sigma tilt error of paper_40's estimator kept 9 of 100 seeds
+    from ever leaving STABILISE. 15 deg still refuses a vehicle mid-recovery (the speed and
+    the dwell must hold too)."""
     stable_speed_mps: float = Field(default=0.2, gt=0)
     stable_dwell_s: float = Field(default=0.3, ge=0)
     assembled_pos_m: float = Field(default=0.5, gt=0)
@@ -138,11 +143,11 @@ class SwarmConfig:
     """With some vehicles of the mission never heard or silent, the others start
     once everything they hear has been assembled for this long."""
     go_stall_s: float = Field(default=30.0, ge=0)
-    """A vehicle heard trying to assemble (in ASSEMBLE) but not assembled, e.g. an autopilot
-    that holds it off its slot, holds the start at most this long: then the start is proposed
-    without it, if go_quorum of those heard are assembled (docs/swarm.md). Vehicles still
-    docked or recovering are coming: they are waited for. The laggards follow the moving
-    formation from where they are."""
+    """A vehicle heard recovering (STABILISE) or trying to assemble (ASSEMBLE) but not
+    assembled, e.g. an autopilot that holds it off its slot, holds the start at most this
+    long: then the start is proposed without it, if go_quorum of those heard are assembled
+    (docs/swarm.md). Vehicles still docked are coming: they are waited for. The laggards
+    follow the moving formation from where they are."""
     go_quorum: float = Field(default=0.5, ge=0, le=1)
     """Fraction of the vehicles heard alive that must be assembled for the stall rule."""
     own_timeout_s: float = Field(default=0.5, gt=0)

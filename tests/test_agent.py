@@ -48,7 +48,7 @@ def test_launch_then_autopilot_recovery_then_assemble_after_ready_and_dwell():
     for t in np.arange(1.02, 1.02 + dwell - 0.02, 0.02):
         assert a.step(t, _own(**calm, t=t), view).phase[0] == Phase.STABILISE
     # a disturbance restarts the dwell
-    tilted = np.array([math.cos(0.1), math.sin(0.1), 0, 0])  # 11.5 deg roll
+    tilted = np.array([math.cos(0.15), math.sin(0.15), 0, 0])  # 17.2 deg roll (beyond stable_tilt_deg 15)
     assert a.step(2.0, _own(**calm, t=2.0, q=tilted), view).phase[0] == Phase.STABILISE
     assert a.step(2.02, _own(**calm, t=2.02), view).phase[0] == Phase.STABILISE
     assert a.step(2.02 + dwell, _own(**calm, t=2.02 + dwell), view).phase[0] == Phase.ASSEMBLE
@@ -389,15 +389,30 @@ def test_the_stall_rule_needs_a_quorum_of_assembled_vehicles():
         view.receive_all(_states([1, 2, 3], t, slots[1:] + 3.0, np.zeros((3, 3))))
         out = a.step(t, _own(slots[0], [0, 0, 0], t), view)
     assert np.isnan(out.t_go_s[0]) and not a.go_decisions
-    # Vehicles still recovering (STABILISE) are coming: waited for however long it takes.
+
+
+@pytest.mark.parametrize("phase, waited_for_ever", [(Phase.LAUNCH, True), (Phase.STABILISE, False)])
+def test_a_docked_vehicle_is_waited_for_but_one_stuck_recovering_is_not(phase, waited_for_ever):
+    """Vehicles 1 and 2 assembled, vehicle 3 heard docked (LAUNCH: it is coming, however long
+    the carrier takes) or recovering (STABILISE) and never calm, e.g. tilted beyond the
+    stabilisation test by steady wind: it holds the start for go_stall_s, not for ever."""
+    m = _mission(4, swarm={"go_stall_s": 5.0, "go_wait_s": 1.0})
     a = Agent(m, np.array([0]))
     a.phase[:] = Phase.ASSEMBLE
     view = SwarmView.unknown(1, 4)
-    for k in range(300):
+    slots = m.slot_ned_m(-1.0)
+    t_go = math.nan
+    for k in range(300):  # 30 s
         t = k * 0.1
-        view.receive_all(_states([1, 2, 3], t, slots[1:] + 3.0, np.zeros((3, 3)), phase=Phase.STABILISE))
+        view.receive_all(_states([1, 2], t, slots[1:3], np.zeros((2, 3)), flags=FLAG_OWN_VALID | FLAG_ASSEMBLED))
+        view.receive_all(_states([3], t, slots[3] + 10.0, np.zeros((1, 3)), phase=phase))
         out = a.step(t, _own(slots[0], [0, 0, 0], t), view)
-    assert np.isnan(out.t_go_s[0])
+        if math.isnan(t_go) and not math.isnan(out.t_go_s[0]):
+            t_go = t
+    if waited_for_ever:
+        assert math.isnan(t_go) and not a.go_decisions
+    else:
+        assert t_go == pytest.approx(5.0) and [x.left_waiting for x in a.go_decisions] == [(3,)]
 
 
 def _seg_dist(p, a, b):
