@@ -57,7 +57,10 @@ def test_sitl_reports_the_estimate_not_the_truth():
 def test_gps_error_does_not_walk_a_headless_formation_away():
     """The autopilot flies on its estimate: with a wandering 0.3 m GPS error the small scenario
     still completes within 1 m (before the setpoint shift, vehicles chased their own error
-    and ended tens of metres from their slots)."""
+    and ended tens of metres from their slots). The calm and in-slot tests are loosened for
+    the noise, as configs/paper_40_disturbed.yaml does: with the speed test at 0.2 m/s one
+    vehicle took 57 s to pass it, and since a vehicle recovering no longer holds the start
+    for more than go_stall_s, the formation left without it."""
     import dataclasses
     from pathlib import Path
 
@@ -69,7 +72,7 @@ def test_gps_error_does_not_walk_a_headless_formation_away():
     cfg = dataclasses.replace(cfg, completion_tol_m=1.0, estimator=EstimatorConfig(
         pos_noise_std_m=0.3, pos_noise_std_vertical_m=0.5, vel_noise_std_mps=0.05, latency_s=0.05))
     cfg = dataclasses.replace(cfg, mission=dataclasses.replace(cfg.mission, phases=dataclasses.replace(
-        cfg.mission.phases, assembled_pos_m=2.0, assembled_speed_mps=1.0)))
+        cfg.mission.phases, assembled_pos_m=2.0, assembled_speed_mps=1.0, stable_speed_mps=1.0)))
     m = compute_metrics(run_scenario(cfg, progress=False), None)
     assert m.mission.completed and m.formation_deviation.final_max_m < 1.0, m.checks
     assert m.separation.pairs_below_safety_distance == 0
