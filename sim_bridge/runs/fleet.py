@@ -62,6 +62,11 @@ def _die_with_parent() -> None:  # runs in the child before exec (Linux)
         pass
 
 
+AGENT_EXIT_GRACE_S = 2.0
+"""When agents exit before the SITL's clock starts, how long the others are given to exit too
+(Fleet._await_failing_agents), s."""
+
+
 @dataclass
 class FleetOptions:
     """What `swarmdrop run` was asked for."""
@@ -469,6 +474,21 @@ class Fleet:
             self.events.append(msg)
             print(f"warning: {msg}", file=sys.stderr, flush=True)
 
+    def _await_failing_agents(self, sim_s: float, grace_s: float = AGENT_EXIT_GRACE_S) -> None:
+        """Agents that fail at start usually fail alike: give the others up to grace_s to exit
+        by themselves, so that the report names every one that did, with its own exit code,
+        not only the first (the run is stopped either way)."""
+        deadline = time.monotonic() + grace_s
+        for p in self.agents:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                break
+            try:
+                p.wait(timeout=left)
+            except subprocess.TimeoutExpired:
+                break  # still running: it is not failing at start like the others
+        self._watch_agents(sim_s)
+
     def _hopeless(self) -> str:
         """Why the run cannot go on (no agent left that can attach or fly), or "".
 
@@ -478,6 +498,8 @@ class Fleet:
         """
         if self.interrupted or not self.dead:
             return ""
+        if self.status.rtf is None and self.status.sim_s == 0.0:
+            self._await_failing_agents(sim_s=0.0)
         gone = ", ".join(f"agent {k} (exit code {c})" for k, c in sorted(self.dead.items()))
         if self.status.rtf is None and self.status.sim_s == 0.0:  # the clock is still held
             return (f"{gone} exited before every vehicle had attached: the SITL's clock waits for all "
