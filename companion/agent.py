@@ -37,7 +37,7 @@ import numpy as np
 
 from companion.commands.book import PlanBook, RefGroup
 from companion.commands.track import LAND as ROLE_LAND
-from companion.control.apf import clip_sum_rows, pair_repulsion_rows, segment_repulsion_rows
+from companion.control.apf import clip_sum_rows, pair_repulsion_rows, repel_cutoff_m, segment_repulsion_rows
 from companion.control.formation import consensus_rows, gains_vector
 from companion.control.kernel import kernel
 from companion.link.dialects.base import PositionLoop
@@ -80,10 +80,8 @@ GHOST_COLUMN_M = 100.0
 
 
 def _repel_cutoff_m(a: ApfConfig) -> float:
-    """How far a vehicle looks for others to be repelled by, m: the influence distance, or
-    everything sensed when closing speeds count (a pair closing in from further away may be
-    within the influence distance once braked; apf.pair_repulsion_rows)."""
-    return a.sensing_radius_m if a.closing_decel_mps2 > 0 else min(a.sensing_radius_m, a.vehicle_influence_m)
+    """apf.repel_cutoff_m for the mission's vehicle repulsion, m."""
+    return repel_cutoff_m(a.sensing_radius_m, a.vehicle_influence_m, a.closing_decel_mps2)
 
 
 def _norm_rows(a: np.ndarray) -> np.ndarray:

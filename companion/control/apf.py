@@ -81,6 +81,16 @@ def _points(name: str, a) -> np.ndarray:
     return a
 
 
+def repel_cutoff_m(sensing_radius_m: float, influence_radius_m: float, closing_decel_mps2: float) -> float:
+    """How far a vehicle looks for bodies to be repelled by, m: the influence distance (never
+    beyond the sensing radius), or everything sensed when closing speeds are judged (a body
+    closing in from further away may be within the influence distance once braked;
+    pair_repulsion_rows)."""
+    if closing_decel_mps2 > 0:
+        return sensing_radius_m
+    return min(sensing_radius_m, influence_radius_m)
+
+
 def vehicle_repulsion(
     pos_ned_m: np.ndarray,
     others_pos_ned_m: np.ndarray,
@@ -151,9 +161,7 @@ def vehicle_repulsion(
     decel = float(closing_decel_mps2)
     if not (np.isfinite(decel) and decel >= 0):
         raise ValueError(f"closing_decel_mps2 must be finite and >= 0, got {closing_decel_mps2!r}")
-    # A closing body further than the influence distance may already be within it once
-    # braked: with closing speeds judged, everything sensed is looked at.
-    cutoff = sensing_radius_m if decel > 0 else min(sensing_radius_m, influence_radius_m)
+    cutoff = repel_cutoff_m(sensing_radius_m, influence_radius_m, decel)
     vel = np.zeros((n, 3)) if vel_ned_mps is None else np.broadcast_to(np.asarray(vel_ned_mps, float), (n, 3))
     qvel = np.zeros((m, 3)) if others_vel_ned_mps is None else np.broadcast_to(
         np.asarray(others_vel_ned_mps, float), (m, 3))

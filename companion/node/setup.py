@@ -42,6 +42,8 @@ log = logging.getLogger("swarmdrop.agent")  # the agent's log lines keep one log
 LAUNCH_RETRY_S = 1.0
 LAUNCH_TIMEOUT_S = 60.0
 WAIT_LOG_S = 3.0
+SET_UP_LOG_TEXT = "set up in"
+"""How the INFO line that ends set-up begins (the fuzz harness waits for it)."""
 """A set-up wait says what it waits for, on which link, this often (INFO)."""
 IDENTITY_GRACE_S = 5.0
 """Only other autopilots heard on the link for this long (five of their 1 Hz HEARTBEATs,
@@ -309,8 +311,8 @@ class Setup:
         except CommandError as err:
             raise NodeFailure(ExitCode.SETUP, f"parameters of {self.ap_name}: {err}") from None
         self.ready_wall_s = time.monotonic() - self.start_wall
-        log.info("set up in %.2f s: %s, %s, %s output at %g Hz, %s launch%s", self.ready_wall_s, self.ap_name, d.name,
-                 cfg.output, cfg.rate_hz, cfg.launch, ", lockstep" if cfg.lockstep else "")
+        log.info("%s %.2f s: %s, %s, %s output at %g Hz, %s launch%s", SET_UP_LOG_TEXT, self.ready_wall_s, self.ap_name,
+                 d.name, cfg.output, cfg.rate_hz, cfg.launch, ", lockstep" if cfg.lockstep else "")
 
     async def read_loop(self) -> PositionLoop | None:
         """The autopilot's position-loop gains (its dialect's loop_params; one it does not answer

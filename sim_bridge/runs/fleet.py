@@ -474,11 +474,12 @@ class Fleet:
             self.events.append(msg)
             print(f"warning: {msg}", file=sys.stderr, flush=True)
 
-    def _await_failing_agents(self, sim_s: float, grace_s: float = AGENT_EXIT_GRACE_S) -> None:
-        """Agents that fail at start usually fail alike: give the others up to grace_s to exit
-        by themselves, so that the report names every one that did, with its own exit code,
-        not only the first (the run is stopped either way)."""
-        deadline = time.monotonic() + grace_s
+    def _await_failing_agents(self) -> None:
+        """Agents that fail at start usually fail alike: give the others up to
+        AGENT_EXIT_GRACE_S to exit by themselves, so that the report names every one that
+        did, with its own exit code, not only the first (the run is stopped either way; the
+        clock is still held at 0)."""
+        deadline = time.monotonic() + AGENT_EXIT_GRACE_S
         for p in self.agents:
             left = deadline - time.monotonic()
             if left <= 0:
@@ -487,7 +488,7 @@ class Fleet:
                 p.wait(timeout=left)
             except subprocess.TimeoutExpired:
                 break  # still running: it is not failing at start like the others
-        self._watch_agents(sim_s)
+        self._watch_agents(0.0)
 
     def _hopeless(self) -> str:
         """Why the run cannot go on (no agent left that can attach or fly), or "".
@@ -498,10 +499,11 @@ class Fleet:
         """
         if self.interrupted or not self.dead:
             return ""
-        if self.status.rtf is None and self.status.sim_s == 0.0:
-            self._await_failing_agents(sim_s=0.0)
+        held = self.status.rtf is None and self.status.sim_s == 0.0  # the clock is still held
+        if held:
+            self._await_failing_agents()
         gone = ", ".join(f"agent {k} (exit code {c})" for k, c in sorted(self.dead.items()))
-        if self.status.rtf is None and self.status.sim_s == 0.0:  # the clock is still held
+        if held:
             return (f"{gone} exited before every vehicle had attached: the SITL's clock waits for all "
                     f"{self.n}, so nothing can fly; see agents/*.log")
         if all(p.poll() is not None for p in self.agents):

@@ -1,8 +1,9 @@
 """`python -m sim_bridge.runs.fuzz`: mutated and hostile MAVLink against every port we open.
 
 One run starts a SITL (6 vehicles, carrier launch, the GCS endpoint, the radio) and one
-agent process (vehicle 0, flying configs/small_6.yaml; the fuzz waits until it is set up), and with `console` (`make fuzz`) an
-operator's console (`swarmdrop console`, listening on a swarm port and a GCS port), then
+agent process (vehicle 0, flying configs/small_6.yaml; the fuzz waits until it is set up),
+and with `console` (`make fuzz`) an operator's console (`swarmdrop console`, listening on a
+swarm port and a GCS port), then
 sends seeded frames, paced, round-robin to: SITL vehicles 0-2, the SITL's GCS endpoint, the
 agent's autopilot port and its swarm port, and the console's swarm and GCS ports.
 Vehicles 3-5 are left alone and watched: their heartbeats (asked for at 5 Hz) must never
@@ -46,6 +47,7 @@ from companion.link.enums import (  # noqa: E402
 )
 from companion.link.msgdef import swarmdrop as sd  # noqa: E402
 from companion.link.wire import Codec, _crc_with_extra, split_datagram  # noqa: E402
+from companion.node.setup import SET_UP_LOG_TEXT  # noqa: E402
 from sim_bridge.runs.fleet import terminate_all  # noqa: E402
 from sim_bridge.sitl.ports import find_free_udp_range  # noqa: E402
 from sim_bridge.sitl.status import SitlStatus  # noqa: E402
@@ -345,7 +347,7 @@ def _start_agent(py: str, mission: Path, autopilot: int, swarm: int, medium: int
                              "--no-stderr-log", "--set-loss-action", "hold", "--stats",
                              str(out_dir / "agent.json")],
                             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=open(out_dir / "agent.stderr", "w"))
-    _wait_ready(proc, log, "set up in", "the agent")
+    _wait_ready(proc, log, SET_UP_LOG_TEXT, "the agent")
     return proc
 
 
