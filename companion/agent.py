@@ -30,18 +30,30 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from enum import IntEnum
 from typing import Callable
 
 import numpy as np
 
+from companion.avoidance import Avoidance, settled_rows, vehicle_cutoff_m
 from companion.commands.book import PlanBook, RefGroup
 from companion.commands.track import LAND as ROLE_LAND
-from companion.control.apf import clip_sum_rows, pair_repulsion_rows, repel_cutoff_m, segment_repulsion_rows
+from companion.control.apf import clip_sum_rows, pair_repulsion_rows, segment_repulsion_rows
 from companion.control.formation import consensus_rows, gains_vector
 from companion.control.kernel import kernel
 from companion.link.dialects.base import PositionLoop
-from companion.mission import ApfConfig, Mission
+from companion.mission import Mission
+from companion.phases import (
+    _ASSEMBLE,
+    _FAILED,
+    _HOVER,
+    _LAND,
+    _LAUNCH,
+    _STABILISE,
+    _TRANSIT,
+    IN_FORMATION,
+)
+from companion.phases import FORMATION_PHASES as FORMATION_PHASES  # (re-exported: users import them from here)
+from companion.phases import Phase as Phase
 from companion.slot_hold import SlotIntegral
 from companion.state import FleetSetpoint
 from companion.swarm import (
@@ -50,38 +62,9 @@ from companion.swarm import (
     FLAG_ID_CONFLICT,
     FLAG_OWN_VALID,
     FLAG_READY,
-    Intruders,
     SwarmStates,
     SwarmView,
 )
-
-
-class Phase(IntEnum):
-    """Flight phase of one vehicle as its agent sees it; the order is the order of a
-    normal flight, FAILED last (table in docs/agent.md, "Phases"). The value is what the
-    swarm link carries and the recorder logs (int8); ASSEMBLE, TRANSIT and HOVER are the
-    formation phases (FORMATION_PHASES)."""
-
-    LAUNCH = 0
-    STABILISE = 1
-    ASSEMBLE = 2
-    TRANSIT = 3
-    HOVER = 4
-    LAND = 5
-    FAILED = 6
-
-
-FORMATION_PHASES = (Phase.ASSEMBLE, Phase.TRANSIT, Phase.HOVER)
-# Plain ints for the per-tick code: IntEnum attribute access costs ~1 us each.
-_LAUNCH, _STABILISE, _ASSEMBLE, _TRANSIT, _HOVER, _LAND, _FAILED = (int(p) for p in Phase)
-IN_FORMATION = np.isin(np.arange(len(Phase)), [int(p) for p in FORMATION_PHASES])  # lookup by phase value
-GHOST_COLUMN_M = 100.0
-"""Depth of a silent vehicle's column when the ground height is unknown."""
-
-
-def _repel_cutoff_m(a: ApfConfig) -> float:
-    """apf.repel_cutoff_m for the mission's vehicle repulsion, m."""
-    return repel_cutoff_m(a.sensing_radius_m, a.vehicle_influence_m, a.closing_decel_mps2)
 
 
 def _norm_rows(a: np.ndarray) -> np.ndarray:
@@ -288,6 +271,12 @@ class AgentOutput:
     """(n, 3) how far the position target is moved off the setpoint's state so that the
     autopilot's velocity integrator learns the bias (companion.slot_hold), NED m; the
     output stage applies it (and takes its pull out of the feed-forward)."""
+    acc_ff_max_mps2: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """(n,) the feed-forward bound the output stage applies to each row's setpoint, m/s^2:
+    setpoint.acc_ff_hover_mps2 when settled at station (HOVER and slower than
+    phases.assembled_speed_mps: companion.avoidance.settled_rows), so that the ghost of a
+    vehicle silent there is small (docs/swarm.md, "Ghosts"); setpoint.acc_ff_max_mps2
+    otherwise (a vehicle still braking into its slot, or pushed by a gust, keeps its authority)."""
 
 
 class Agent:
@@ -304,6 +293,8 @@ class Agent:
         self.mission = mission
         self.ids = np.asarray(ids, dtype=np.int64)
         self.kernels = kernels or AgentKernels()
+        self.avoid = Avoidance(mission, self.kernels)
+        """Take-off columns, ghosts and intruders (companion.avoidance)."""
         n = len(self.ids)
         self._rows = np.arange(n)
         self.phase = np.full(n, _LAUNCH, dtype=np.int8)
@@ -453,7 +444,7 @@ class Agent:
         n_veh = view.n_vehicles
         pred = np.empty((n_rows, n_veh, 3))
         usable, repel, ghost = (np.empty((n_rows, n_veh), np.bool_) for _ in range(3))
-        cutoff = _repel_cutoff_m(a)
+        cutoff = vehicle_cutoff_m(a)
         kern.neighbour_sets_rows(rows, ids, p, view.pos_ned_m, view.vel_ned_mps, view.flags, view.phase, age,
                                  sw.stale_after_s, IN_FORMATION, cutoff, pred, usable, repel, ghost)
         # Every own row flies formation (the usual case): the view's arrays, not row copies.
@@ -464,15 +455,14 @@ class Agent:
 
         u2 = np.zeros((n_rows, 3))
         if cfg.launch == "ground":  # neighbours still on the ground or taking off: their columns
-            self._takeoff_columns(rows, p, view, age, ids, whole, repel, u2)
+            self.avoid.takeoff_columns(rows, p, view, age, ids, whole, repel, u2)
         kern.pair_repulsion_rows(p, v, pred, vv, repel, ids, a.vehicle_gain_mps2, a.vehicle_influence_m, cutoff,
                                  a.kappa, a.closing_decel_mps2, u2)
         if ghost.any():
-            top, bottom = self._ghost_columns(view.pos_ned_m if whole else view.pos_ned_m[rows], vv)
-            kern.segment_repulsion_rows(p, top, bottom, np.full(ghost.shape, sw.ghost_radius_m), ghost,
-                                        a.vehicle_gain_mps2, a.vehicle_influence_m, a.kappa, u2)
+            self.avoid.ghosts(p, view.pos_ned_m if whole else view.pos_ned_m[rows], vv,
+                               age if whole else age[rows], view.phase if whole else view.phase[rows], ghost, u2)
         if view.intruders is not None:  # (an identity conflict has been heard: rare)
-            self._repel_intruders(rows, p, v, view.intruders, view.intruders.age_s(t_s), u2)
+            self.avoid.intruders(rows, p, v, view.intruders, view.intruders.age_s(t_s), u2)
         if self._n_obstacles:
             kern.segment_repulsion_rows(p, self._obs_ends[:n_rows], self._obs_ends[:n_rows], self._obs_r[:n_rows],
                                         self._obs_use[:n_rows], a.obstacle_gain_mps2, a.obstacle_influence_m, a.kappa,
@@ -482,58 +472,6 @@ class Agent:
         acc = np.empty((n_rows, 3))
         kern.clip_sum_rows(u1, u2, cfg.consensus_accel_max_mps2, cfg.total_accel_max_mps2, acc)
         return acc, h_pos_rows, h_vel_rows
-
-    def _takeoff_columns(self, rows: np.ndarray, p: np.ndarray, view: SwarmView, age: np.ndarray, ids: np.ndarray,
-                         whole: bool, repel: np.ndarray, u2: np.ndarray) -> None:
-        """Ground launch (docs/swarm.md, "Ground take-off"): a neighbour heard on the ground
-        (LAUNCH) or taking off (STABILISE) will occupy the column above its take-off point up
-        to takeoff_alt_m, whenever its arming succeeds (retries delay some by seconds). Each
-        such column repels as a capsule of ghost_radius_m instead of as a point, so an
-        assembling vehicle routes around it rather than across it.
-
-        Args: rows (R,) own rows; p (R, 3); view, age (n, N) the swarm as heard; ids (R,) own
-            ids; whole: every own row flies formation. Writes: repel (R, N) loses the column
-            vehicles (their capsule replaces the point); u2 (R, 3) gains their push.
-        """
-        m, sw, a = self.mission, self.mission.cfg.swarm, self.mission.cfg.apf
-        phase = view.phase if whole else view.phase[rows]
-        flags = view.flags if whole else view.flags[rows]
-        pos = view.pos_ned_m if whole else view.pos_ned_m[rows]
-        col = (phase <= _STABILISE) & (age[rows] <= sw.stale_after_s) & ((flags & FLAG_OWN_VALID) != 0) \
-            & np.isfinite(pos).all(axis=-1)
-        col[np.arange(len(rows)), ids] = False
-        if not col.any():
-            return
-        repel &= ~col
-        ground = m.cfg.ground_z_m
-        top = pos.copy()
-        top[..., 2] = np.minimum(pos[..., 2], (pos[..., 2] if ground is None else ground) - m.cfg.takeoff_alt_m)
-        self.kernels.segment_repulsion_rows(p, top, pos, np.full(col.shape, sw.ghost_radius_m), col,
-                                            a.vehicle_gain_mps2, a.vehicle_influence_m, a.kappa, u2)
-
-    def _repel_intruders(self, rows: np.ndarray, p: np.ndarray, v: np.ndarray, it: Intruders, age: np.ndarray,
-                         u2: np.ndarray) -> None:
-        """Senders that claim an own vehicle's id (identity conflicts, docs/swarm.md) repel it
-        as vehicles do, by the neighbours' rules: a fresh, valid, airborne one at its predicted
-        position within the sensing radius, a silent one as a ghost column. Adds into u2 (R, 3).
-
-        Args: rows (R,) own rows; p, v (R, 3) their positions and velocities; it: the view's intruders;
-            age (n, K) of every intruder slot, s (inf where unused).
-        """
-        sw, a, kern = self.mission.cfg.swarm, self.mission.cfg.apf, self.kernels
-        n_rows, k = len(rows), it.stamp_s.shape[1]
-        nobody = np.full(n_rows, -1, np.int64)  # no slot is the own vehicle; coincidence pushes north
-        pred = np.empty((n_rows, k, 3))
-        usable, repel, ghost = (np.empty((n_rows, k), np.bool_) for _ in range(3))
-        cutoff = _repel_cutoff_m(a)
-        kern.neighbour_sets_rows(rows, nobody, p, it.pos_ned_m, it.vel_ned_mps, it.flags, it.phase, age,
-                                 sw.stale_after_s, IN_FORMATION, cutoff, pred, usable, repel, ghost)
-        kern.pair_repulsion_rows(p, v, pred, it.vel_ned_mps[rows], repel, nobody, a.vehicle_gain_mps2,
-                                 a.vehicle_influence_m, cutoff, a.kappa, a.closing_decel_mps2, u2)
-        if ghost.any():
-            top, bottom = self._ghost_columns(it.pos_ned_m[rows], it.vel_ned_mps[rows])
-            kern.segment_repulsion_rows(p, top, bottom, np.full(ghost.shape, sw.ghost_radius_m), ghost,
-                                        a.vehicle_gain_mps2, a.vehicle_influence_m, a.kappa, u2)
 
     def _consensus(self, rows, groups, p, v, ids, pred, vv, usable):
         """Eq. 27 for the rows, each on the reference its plan gives it (the RefGroups of
@@ -563,18 +501,6 @@ class Agent:
             out[at], resid[at] = o, rs
             h_pos_rows[at], h_vel_rows[at] = g.h_pos[g.h_sel, ids[at]], g.h_vel[g.h_sel, ids[at]]
         return out, h_pos_rows, h_vel_rows, resid
-
-    def _ghost_columns(self, pos: np.ndarray, vel: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Where a silent vehicle can be: its autopilot brakes to Hold (PX4 offboard loss,
-        ArduPilot GUID_TIMEOUT) and later lands straight down. So the column from its
-        braking point down to the ground. (..., 3) arrays in, two (..., 3) ends out."""
-        sw = self.mission.cfg.swarm
-        speed = _norm_rows(vel)[..., None]
-        top = pos + np.nan_to_num(vel * speed / (2.0 * sw.ghost_brake_mps2))
-        bottom = top.copy()
-        ground = self.mission.cfg.ground_z_m
-        bottom[..., 2] = np.maximum(top[..., 2], top[..., 2] + GHOST_COLUMN_M if ground is None else ground)
-        return top, bottom
 
     def step(self, t_s: float, own: OwnState, view: SwarmView) -> AgentOutput:
         """Advance phases and compute setpoints for the agent's own vehicles.
@@ -639,7 +565,9 @@ class Agent:
         published = SwarmStates(self.ids.copy(), np.asarray(own.stamp_s, float).copy(), own.pos_ned_m.copy(),
                                 own.vel_ned_mps.copy(), q.copy(), phase.copy(), flags, self.t_go_s.copy(), seq)
         return AgentOutput(sp, phase.copy(), self.assembled.copy(), self.t_go_s.copy(), valid, slot, published, seq,
-                           self.handed_over.copy(), self.slot_hold.drive_ned_m.copy())
+                           self.handed_over.copy(), self.slot_hold.drive_ned_m.copy(),
+                           np.where(settled_rows(phase, own.vel_ned_mps, cfg.phases.assembled_speed_mps),
+                                    cfg.setpoint.acc_ff_hover_mps2, cfg.setpoint.acc_ff_max_mps2))
 
     def _plan_times(self, t_s: float, groups: list[RefGroup]) -> tuple[np.ndarray, np.ndarray]:
         """What each row's plan says of time (and ABORT): when its centre comes to rest, when it

@@ -126,6 +126,63 @@ class PhaseConfig:
 
 
 @dataclass(config=STRICT)
+class LossEnvelope:
+    """The mission's assumption about companion loss (docs/swarm.md, "Ghosts"): for at most
+    timeout_s the last setpoint keeps acting, then the autopilot stops within these limits
+    and holds ("hold") or lands straight down ("land", which also covers a hold). The
+    defaults cover PX4 (COM_OF_LOSS_T 1 s, COM_OBL_RC_ACT 5 Hold, MPC_ACC_HOR 3,
+    MPC_JERK_AUTO 4, its 0.6 s stop lead) and ArduPilot GUIDED with GUID_TIMEOUT 1 s
+    (WPNAV_ACCEL 2.5, WPNAV_ACCEL_Z 1, PSC_JERK_XY/Z 5), each with its stock limits."""
+
+    timeout_s: float = Field(default=1.0, ge=0)
+    """The longest setpoint timeout (PX4 COM_OF_LOSS_T, ArduPilot GUID_TIMEOUT), s."""
+    then: Literal["hold", "land"] = "hold"
+    """"hold": every autopilot stops and holds (PX4 COM_OBL_RC_ACT 5, ArduPilot GUIDED; what
+    `swarmdrop agent --set-loss-action hold` and the fleet harness set); "land": some may land
+    straight down where they stop (PX4 4), so every ghost reaches the ground."""
+    brake_hor_mps2: float = Field(default=2.5, gt=0)
+    """The weakest horizontal deceleration of a stop, m/s^2."""
+    brake_ver_mps2: float = Field(default=1.0, gt=0)
+    """The weakest vertical deceleration, m/s^2."""
+    jerk_hor_mps3: float = Field(default=4.0, gt=0)
+    jerk_ver_mps3: float = Field(default=4.0, gt=0)
+    stop_lead_s: float = Field(default=0.6, ge=0)
+    """The longest lead of an autopilot's own stop point (PX4: 0.6 s), s."""
+    descent_speed_mps: float = Field(default=0.7, gt=0)
+
+    def behaviour(self):  # -> companion.link.dialects.base.LossBehaviour
+        """As a LossBehaviour (what companion.control.ghost.ghost_capsules takes)."""
+        from companion.link.dialects.base import AfterLoss, CarryOn, LossBehaviour, Mode
+        return LossBehaviour(self.timeout_s, CarryOn.VELOCITY_ACCELERATION, AfterLoss(self.then), Mode.HOLD,
+                             descent_speed_mps=self.descent_speed_mps if self.then == "land" else 0.0,
+                             brake_hor_mps2=self.brake_hor_mps2, brake_ver_mps2=self.brake_ver_mps2,
+                             jerk_hor_mps3=self.jerk_hor_mps3, jerk_ver_mps3=self.jerk_ver_mps3,
+                             stop_lead_s=self.stop_lead_s)
+
+    def exceeded_by(self, loss) -> list[str]:
+        """How an autopilot's LossBehaviour goes beyond this envelope ([] if it does not):
+        one phrase per limit, naming the autopilot's value and the mission's."""
+        from companion.link.dialects.base import AfterLoss
+        tol = 1e-6  # relative: parameters travel as float32
+        out = []
+        if loss.timeout_s > self.timeout_s * (1.0 + tol) + 1e-9:
+            out.append(f"its setpoint timeout {loss.timeout_s:g} s is longer than the mission's {self.timeout_s:g} s")
+        if loss.then == AfterLoss.LAND and self.then == "hold":
+            out.append("it lands where the mission assumes a hold")
+        elif loss.then not in (AfterLoss.HOLD, AfterLoss.LAND):
+            out.append(f"it {loss.what_then()}")
+        for name, mine, theirs in (("horizontal braking", loss.brake_hor_mps2, self.brake_hor_mps2),
+                                   ("vertical braking", loss.brake_ver_mps2, self.brake_ver_mps2),
+                                   ("horizontal jerk", loss.jerk_hor_mps3, self.jerk_hor_mps3),
+                                   ("vertical jerk", loss.jerk_ver_mps3, self.jerk_ver_mps3)):
+            if mine < theirs * (1.0 - tol):
+                out.append(f"its {name} limit {mine:g} is below the mission's {theirs:g}")
+        if loss.stop_lead_s > self.stop_lead_s * (1.0 + tol) + 1e-9:
+            out.append(f"its stop lead {loss.stop_lead_s:g} s is longer than the mission's {self.stop_lead_s:g} s")
+        return out
+
+
+@dataclass(config=STRICT)
 class SwarmConfig:
     """The swarm contract on a lossy, delayed link (docs/swarm.md)."""
 
@@ -153,9 +210,17 @@ class SwarmConfig:
     own_timeout_s: float = Field(default=0.5, gt=0)
     """The agent's own state older than this counts as invalid: it commands a stop."""
     ghost_radius_m: float = Field(default=1.0, gt=0)
-    """Radius of a silent vehicle's column (hold error of its autopilot plus its size)."""
-    ghost_brake_mps2: float = Field(default=3.0, gt=0)
-    """Deceleration assumed for a silent vehicle's autopilot when it brakes to Hold."""
+    """A silent vehicle's size plus its autopilot's hold error, m: the least radius of its
+    ghost (companion.control.ghost)."""
+    ghost_accel_mps2: float = Field(default=0.5, ge=0)
+    """A, the acceleration feed-forward a silent vehicle's ghost allows, m/s^2: at most this,
+    and at most the bound the output stage enforced in the state it was last heard in
+    (setpoint.acc_ff_hover_mps2 settled at station, acc_ff_max_mps2 otherwise), so the ghost
+    is a true bound only where that bound is the smaller (docs/swarm.md, "Ghosts")."""
+    loss: LossEnvelope = LossEnvelope()
+    """What every autopilot of the mission does at worst when its companion falls silent: the
+    swarm's shared model of a silent vehicle (every agent draws every ghost from it); each
+    agent checks its own autopilot against it at set-up."""
 
 
 @dataclass(config=STRICT)
@@ -236,8 +301,21 @@ class SetpointConfig:
     for COM_OF_LOSS_T), so it bounds the overshoot on loss: v T + acc_ff_max T^2 / 2
     (docs/agent.md). 3 m/s^2 is the consensus term's own bound; on paper_40 the planner asks
     more than that in 0.13 % of its commands (the repulsion, briefly)."""
+    acc_ff_hover_mps2: float = Field(default=3.0, gt=0)
+    """The feed-forward bound for a vehicle settled at station (HOVER, slower than
+    phases.assembled_speed_mps), m/s^2, at most acc_ff_max_mps2. Set it at or under
+    swarm.ghost_accel_mps2 and the ghost of a vehicle that falls silent there is a true bound
+    (docs/swarm.md, "Ghosts"). Not by default: the feed-forward also carries the bias the
+    agent has learnt (paper_40's shipped bias needs up to 0.75 m/s^2 at station on seed 15);
+    0.5 left a vehicle circling its slot 0.3-0.6 m off on seed 2024, 0.75 and 1 did so on
+    seed 15."""
     hover_thrust: HoverThrustConfig = HoverThrustConfig()
     """Attitude output's online hover-thrust estimate."""
+
+    def __post_init__(self) -> None:
+        if self.acc_ff_hover_mps2 > self.acc_ff_max_mps2:
+            raise ValueError(f"acc_ff_hover_mps2 {self.acc_ff_hover_mps2} must be at most acc_ff_max_mps2 "
+                             f"{self.acc_ff_max_mps2}")
 
 
 @dataclass(config=STRICT)

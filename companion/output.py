@@ -133,15 +133,16 @@ class HoverThrustEstimator:
 
 
 @kernel
-def trajectory_rows(t_s, plan_t, kind, pp, pv, pa, drive, stiff, own_p, lim, fence, out_kind, out_p, out_v, out_a):
+def trajectory_rows(t_s, plan_t, kind, pp, pv, pa, drive, stiff, own_p, lim, ff_max, fence, out_kind, out_p, out_v,
+                    out_a):
     """Steps 1-5 of the module docstring for every row: the trajectory setpoint now.
 
     Args:
         t_s: now, mission time, s. plan_t (n,) when each row's plan was made, s; kind (n,)
             PLAN_*; pp, pv, pa (n, 3) the plan's position, velocity, acceleration (mission NED;
             NaN axes not commanded); own_p (n, 3) the vehicles' positions (the fence's faces).
-        lim: (4,) horizontal speed, climb speed and descent speed limits (m/s) and the
-            acceleration feed-forward bound (m/s^2); fence: (7,) 1/0 fence on, then its
+        lim: (3,) horizontal speed, climb speed and descent speed limits (m/s); ff_max (n,)
+            each row's acceleration feed-forward bound (m/s^2); fence: (7,) 1/0 fence on, then its
             min (3,) and max (3,) corners, mission NED m.
     Written: out_kind (n,) SEND_NOTHING or SEND_TRAJECTORY; out_p, out_v, out_a (n, 3).
     """
@@ -155,8 +156,8 @@ def trajectory_rows(t_s, plan_t, kind, pp, pv, pa, drive, stiff, own_p, lim, fen
         out_kind[i] = SEND_TRAJECTORY
         a0, a1, a2 = pa[i, 0], pa[i, 1], pa[i, 2]
         an = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-        if an > lim[3]:  # (False for NaN: an acceleration not commanded stays so)
-            s = lim[3] / an
+        if an > ff_max[i]:  # (False for NaN: an acceleration not commanded stays so)
+            s = ff_max[i] / an
             a0, a1, a2 = a0 * s, a1 * s, a2 * s
         p0, p1, p2 = pp[i, 0], pp[i, 1], pp[i, 2]
         v0, v1, v2 = pv[i, 0], pv[i, 1], pv[i, 2]
@@ -170,8 +171,8 @@ def trajectory_rows(t_s, plan_t, kind, pp, pv, pa, drive, stiff, own_p, lim, fen
                 p0, p1, p2 = p0 + d0, p1 + d1, p2 + d2
                 a0, a1, a2 = a0 - stiff[i, 0] * d0, a1 - stiff[i, 1] * d1, a2 - stiff[i, 2] * d2
                 an = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-                if an > lim[3]:
-                    s = lim[3] / an
+                if an > ff_max[i]:
+                    s = ff_max[i] / an
                     a0, a1, a2 = a0 * s, a1 * s, a2 * s
         v0, v1, v2 = clamp_velocity3(v0, v1, v2, lim[0], lim[1], lim[2])
         if fence[0] > 0.0:
@@ -271,8 +272,10 @@ class OutputStage:
         self.n = n
         self.kernels = kernels or OutputKernels()
         self.limits = limits
-        self.lim = np.array([limits.xy_vel_max_mps, limits.z_vel_max_up_mps, limits.z_vel_max_dn_mps,
-                             float(acc_ff_max_mps2)])
+        self.lim = np.array([limits.xy_vel_max_mps, limits.z_vel_max_up_mps, limits.z_vel_max_dn_mps])
+        self.acc_ff_max_mps2 = float(acc_ff_max_mps2)
+        self.ff_max = np.full(n, self.acc_ff_max_mps2)
+        """(n,) each row's feed-forward bound for its plan (set_plan), m/s^2."""
         self.fence = np.zeros(7)
         if geofence is not None:
             self.fence[0], self.fence[1:4], self.fence[4:7] = 1.0, geofence[0], geofence[1]
@@ -303,7 +306,8 @@ class OutputStage:
         if not self.attitude and loop is not None:
             self.stiffness[rows] = loop.stiffness_per_s2()
 
-    def set_plan(self, t_s: float, sp: FleetSetpoint, q_ok: np.ndarray, drive_ned_m: np.ndarray | None = None) -> None:
+    def set_plan(self, t_s: float, sp: FleetSetpoint, q_ok: np.ndarray, drive_ned_m: np.ndarray | None = None,
+                 acc_ff_max_mps2: np.ndarray | None = None) -> None:
         """Keep the planner's setpoint (mission frame) as each row's plan from t_s.
 
         Args:
@@ -312,7 +316,12 @@ class OutputStage:
                 output flies a state plan only then).
             drive_ned_m: (n, 3) the slot-hold drive (AgentOutput.drive_ned_m), m; None: none.
                 Ignored in attitude output and where not finite.
+            acc_ff_max_mps2: (n,) each row's feed-forward bound for this plan
+                (AgentOutput.acc_ff_max_mps2: tighter in HOVER), m/s^2, at most the stage's;
+                None: the stage's bound.
         """
+        self.ff_max[:] = self.acc_ff_max_mps2 if acc_ff_max_mps2 is None else \
+            np.fmin(np.where(np.isfinite(acc_ff_max_mps2), acc_ff_max_mps2, self.acc_ff_max_mps2), self.acc_ff_max_mps2)
         if drive_ned_m is None or self.attitude:
             self.drive.fill(0.0)
         else:
@@ -341,7 +350,8 @@ class OutputStage:
         """
         o, pl = self.out, self.plan
         self.kernels.trajectory_rows(t_s, self.plan_t, self.kind, pl.pos_ned_m, pl.vel_ned_mps, pl.acc_ned_mps2,
-                                     self.drive, self.stiffness, own_pos, self.lim, self.fence, o.send, o.pos_ned_m, o.vel_ned_mps,
+                                     self.drive, self.stiffness, own_pos, self.lim, self.ff_max,
+                                     self.fence, o.send, o.pos_ned_m, o.vel_ned_mps,
                                      o.acc_ned_mps2)
         o.yaw_rad[:] = pl.yaw_rad
         o.yaw_rate_radps[:] = pl.yaw_rate_radps

@@ -225,9 +225,78 @@ def test_a_silent_vehicle_stays_an_obstacle_for_good():
     for t in (1.0 + 2 * m.cfg.swarm.stale_after_s, 60.0, 3600.0):
         ghost = _push(m, me, view, t) - base
         assert ghost[1] < -0.5, f"silent for {t - 1:.0f} s: no longer avoided"
-    # the column reaches the ground: the vehicle may have landed below its last position
-    below = me + [0.0, 0.0, 5.0]
-    assert (_push(m, below, view, 60.0) - _push(m, below, SwarmView.unknown(1, 2), 60.0))[1] < -0.5
+    # A mission whose autopilots may land on loss (swarm.loss.then "land"): the ghost's column
+    # reaches the ground, since the vehicle may have landed below its last position; a hold
+    # (the default) has none, so 9 m below it nothing pushes.
+    below = me + [0.0, 0.0, 9.0]
+    assert np.allclose(_push(m, below, view, 60.0), _push(m, below, SwarmView.unknown(1, 2), 60.0))
+    lands = _mission(2, swarm={"loss": {"then": "land"}})
+    assert (_push(lands, below, view, 60.0) - _push(lands, below, SwarmView.unknown(1, 2), 60.0))[1] < -0.5
+
+
+def _ghost_push(m, own_pos, last_pos, last_vel, phase, t_heard, t):
+    """The push on own_pos from a vehicle last heard at t_heard (companion.control.ghost's
+    capsules of the mission's loss envelope, A by that phase), as the APF computes it."""
+    from companion.control.apf import segment_repulsion_rows
+    from companion.control.ghost import ghost_capsules
+    cfg = m.cfg
+    sp = cfg.setpoint
+    acc = min(sp.acc_ff_hover_mps2 if phase == Phase.HOVER else sp.acc_ff_max_mps2, cfg.swarm.ghost_accel_mps2)
+    g = ghost_capsules(np.asarray(last_pos, float), np.asarray(last_vel, float), t - t_heard,
+                       cfg.swarm.loss.behaviour(), acc, cfg.ground_z_m, cfg.swarm.ghost_radius_m,
+                       lag_s=cfg.swarm.stale_after_s)
+    out = np.zeros((1, 3))
+    segment_repulsion_rows(np.atleast_2d(own_pos), g.a_ned_m[None], g.b_ned_m[None], g.radius_m[None], g.use[None],
+                           cfg.apf.vehicle_gain_mps2, cfg.apf.vehicle_influence_m, cfg.apf.kappa, out)
+    return out[0], g
+
+
+def test_a_silent_vehicle_is_avoided_where_its_autopilot_can_take_it():
+    """A silent vehicle is its ghost's capsules (docs/swarm.md, "Ghosts"): last heard at rest
+    in HOVER, a ball of 2.3 m (A = swarm.ghost_accel_mps2, 0.5 m/s^2): a vehicle 4 m away,
+    1.7 m from its surface, is pushed, though the same vehicle heard fresh, 4 m
+    off, exerts nothing (eq. 30's influence is 4 m). Last heard crossing towards us at 2 m/s, it is
+    avoided where it can coast and brake to (9 m off, A = 0.5 m/s^2: the stop capsule from
+    6 m to 3.7 m off, 2.6 m wide), which a braking column alone (1 m around its stop point,
+    0.7 m on) did not reach."""
+    m = _mission(2)
+    me = m.slot_ned_m(-1.0)[0]
+    base = _push(m, me, SwarmView.unknown(1, 2), 1.0)
+    east = me + [0.0, 4.0, 0.0]
+    view = SwarmView.unknown(1, 2)
+    view.receive([0], _states(1, 1.0, east, np.zeros(3), phase=Phase.HOVER))
+    np.testing.assert_allclose(_push(m, me, view, 1.0) - base, 0.0, atol=1e-12)  # heard: a vehicle 4 m off
+    t = 1.0 + 2 * m.cfg.swarm.stale_after_s
+    want, g = _ghost_push(m, me, east, np.zeros(3), Phase.HOVER, 1.0, t)
+    assert g.radius_m[g.use].max() == pytest.approx(2.28, abs=0.01)
+    got = _push(m, me, view, t) - base
+    cap = m.cfg.total_accel_max_mps2  # (the agent's sum is bounded)
+    np.testing.assert_allclose(got, want * min(1.0, cap / np.linalg.norm(want)), rtol=1e-9, atol=1e-12)
+    assert got[1] < -1.0  # pushed west
+    # crossing towards us from 9 m west, 2 m/s east, in transit
+    west, vel = me + [0.0, -9.0, 0.0], np.array([0.0, 2.0, 0.0])
+    view = SwarmView.unknown(1, 2)
+    view.receive([0], _states(1, 1.0, west, vel, phase=Phase.TRANSIT))
+    want, g = _ghost_push(m, me, west, vel, Phase.TRANSIT, 1.0, t)
+    got = _push(m, me, view, t) - base
+    np.testing.assert_allclose(got, want, rtol=1e-9, atol=1e-12)
+    assert got[1] > 1.0  # pushed east, away from where it can be
+    stop = west + vel * np.linalg.norm(vel) / (2 * 3.0)  # the former column: 1 m around the stop point
+    assert np.linalg.norm(me - stop) - 1.0 > m.cfg.apf.vehicle_influence_m
+
+
+def test_the_feed_forward_bound_is_tighter_settled_at_station():
+    m = _mission(1, setpoint={"acc_ff_hover_mps2": 0.5})
+    a = Agent(m, np.array([0]))
+    me = m.slot_ned_m(-1.0)[0]
+    a.assembled[:] = True
+    for phase, bound, t in ((Phase.ASSEMBLE, m.cfg.setpoint.acc_ff_max_mps2, 1.0),
+                            (Phase.HOVER, m.cfg.setpoint.acc_ff_hover_mps2, 1000.0)):
+        a.phase[:] = phase
+        a.t_go_s[:] = 0.0 if phase == Phase.HOVER else math.nan  # transit long over: the centre at rest
+        out = a.step(t, _own(me, np.zeros(3), t), SwarmView.unknown(1, 1))
+        assert out.phase[0] == phase and out.acc_ff_max_mps2.tolist() == [bound]
+    assert m.cfg.setpoint.acc_ff_hover_mps2 < m.cfg.setpoint.acc_ff_max_mps2
 
 
 def test_a_stale_neighbour_leaves_consensus():

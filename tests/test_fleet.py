@@ -26,6 +26,7 @@ os.environ.setdefault("MAVLINK20", "1")
 from pymavlink import mavutil  # noqa: E402
 
 from companion.agent import Phase  # noqa: E402
+from companion.avoidance import settled_rows  # noqa: E402
 from companion.control.ghost import ghost_capsules  # noqa: E402
 from companion.frames import geodetic_to_ned  # noqa: E402
 from companion.link.dialects import Mode, dialect_named  # noqa: E402
@@ -44,6 +45,9 @@ COMPANION_COMPID = 191
 COM_OF_LOSS_T = 1.0  # the SITL's PX4 default (sim_bridge/sitl/autopilots/px4.py); the harness does not change it
 AUTOPILOT_PERIOD_S = 0.02  # the SITL's mode/failsafe logic runs at 50 Hz of simulated time
 KILLED = 2
+KILL_WAYPOINTS = ((20.0, 0.0, -10.0), (45.0, 6.0, -12.0))
+"""A longer leg for the kill runs: the station lies beyond the reach of the silent vehicle's
+ghost, left where it fell silent (a slot within it is given up as far as its push goes)."""
 KILL_AT_S = 14.0
 """This config with the shipped estimator bias: vehicles released 0-3 s and in ASSEMBLE by
 ~9 s (the agent's own stabilisation check). The harness kills on its 1 Hz (wall)
@@ -53,7 +57,7 @@ be in STABILISE, its agent never having sent a setpoint.)"""
 
 
 # ---------------------------------------------------------------------------- helpers
-def write_config(dir_: Path, name: str, **top) -> Path:
+def write_config(dir_: Path, name: str, waypoints=((20.0, 0.0, -10.0), (30.0, 6.0, -12.0)), **top) -> Path:
     """configs/small_6.yaml cut down to 4 vehicles, a 6 m circle and a short leg (no obstacle)."""
     data = yaml.safe_load((ROOT / "configs" / "small_6.yaml").read_text())
     data["name"] = name
@@ -62,7 +66,7 @@ def write_config(dir_: Path, name: str, **top) -> Path:
     m = data["mission"]
     m["n_vehicles"] = N
     m["formation"] = {"radius_m": 6.0}
-    m["waypoints_ned_m"] = [[20.0, 0.0, -10.0], [30.0, 6.0, -12.0]]
+    m["waypoints_ned_m"] = [list(w) for w in waypoints]
     m["obstacles"] = []
     data["output"] = {"snapshot_times_s": [10.0], "attitude_vehicles": [1, 2, 3, 4], "avoidance_vehicles": [1, 4]}
     data.update(top)
@@ -217,19 +221,30 @@ def loss_params_from_tlog(run: Run, dialect, sysid: int) -> dict[str, float]:
 
 
 def assert_path_inside_ghost(run: Run, config: Path, loss, t_last_s: float, killed: int) -> None:
-    """The killed vehicle's true path from its last setpoint on lies inside the swarm's ghost
-    of it (companion.control.ghost: its autopilot's loss behaviour, the agents' bound on the
-    acceleration feed-forward, the ghost radius), from its true state at that time."""
+    """The killed vehicle's true path from its last setpoint on lies inside its ghost
+    (companion.control.ghost), from its true state at that time, twice over:
+
+    * the bound: its own autopilot's loss behaviour with the feed-forward bound the output
+      stage enforced (setpoint.acc_ff_hover_mps2 settled at station, acc_ff_max_mps2
+      otherwise);
+    * the swarm's ghost, the one every agent's APF avoids: the mission's loss envelope
+      (swarm.loss, which the agent checked its autopilot against at set-up) and A as the
+      agents take it (swarm.ghost_accel_mps2, or the enforced bound if smaller)."""
     mission = MissionConfig(**yaml.safe_load(config.read_text())["mission"])
     tel = run.tel
     i0 = int(np.searchsorted(tel["t_s"], t_last_s, side="right")) - 1  # the sample at or before it
     lag = float(t_last_s - tel["t_s"][i0]) + 0.05  # (and the last setpoint's own period)
-    caps = ghost_capsules(tel["pos_ned_m"][i0, killed].astype(float), tel["vel_ned_mps"][i0, killed].astype(float),
-                          0.0, loss, mission.setpoint.acc_ff_max_mps2, mission.ground_z_m,
-                          mission.swarm.ghost_radius_m, lag_s=lag)
+    hover = bool(settled_rows(tel["phase"][i0, killed], tel["vel_ned_mps"][i0, killed], mission.phases.assembled_speed_mps))
+    sp, sw = mission.setpoint, mission.swarm
+    p0, v0 = tel["pos_ned_m"][i0, killed].astype(float), tel["vel_ned_mps"][i0, killed].astype(float)
     path = tel["pos_ned_m"][i0:, killed].astype(float)
-    inside = caps.contains(path)
-    assert inside.all(), f"left its ghost at t = {tel['t_s'][i0 + int(np.argmin(inside))]:.2f} s"
+    for what, behaviour, acc in (
+            ("its autopilot's bound", loss, sp.acc_ff_hover_mps2 if hover else sp.acc_ff_max_mps2),
+            ("the swarm's ghost", sw.loss.behaviour(),
+             min(sp.acc_ff_hover_mps2 if hover else sp.acc_ff_max_mps2, sw.ghost_accel_mps2))):
+        caps = ghost_capsules(p0, v0, 0.0, behaviour, acc, mission.ground_z_m, sw.ghost_radius_m, lag_s=lag)
+        inside = caps.contains(path)
+        assert inside.all(), f"left {what} at t = {tel['t_s'][i0 + int(np.argmin(inside))]:.2f} s"
 
 
 # ---------------------------------------------------------------------------- runs (module-scoped)
@@ -314,7 +329,7 @@ def test_killed_agent_autopilot_does_what_px4_does_and_the_swarm_goes_on(cfg_dir
     what COM_OBL_RC_ACT says, as the value the tlog shows (the agents set or verify it at
     set-up): 5 Hold for ever (it never lands by itself), 4 Land; the stock 0 without RC the
     no-RC descent with no horizontal control."""
-    config = write_config(cfg_dir, "fleet4")
+    config = write_config(cfg_dir, "fleet4_kill", KILL_WAYPOINTS)
     run = fly(tmp_path / "run", config, "--kill-agent", f"{KILLED}@{KILL_AT_S:g}")
     fl = run.metrics["fleet"]
     assert fl["dead_agents"] == {str(KILLED): -9} and fl["killed_agents"] == [KILLED]
@@ -376,7 +391,7 @@ def test_killed_agent_ardupilot_flies_on_for_guid_timeout_then_holds_in_guided_i
     """ArduPilot on companion loss: the last velocity and acceleration for GUID_TIMEOUT, then
     a stop and a hold in GUIDED for ever (no mode change, no landing); the path lies inside
     the swarm's ghost of it and nobody comes within 1 m."""
-    config = write_config(cfg_dir, "fleet4")
+    config = write_config(cfg_dir, "fleet4_kill", KILL_WAYPOINTS)
     run = fly(tmp_path / "run", config, "--dialect", "ardupilot", "--kill-agent", f"{KILLED}@{KILL_AT_S:g}")
     assert run.metrics["fleet"]["killed_agents"] == [KILLED]
     sysid = KILLED + 1

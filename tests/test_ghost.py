@@ -16,6 +16,7 @@ from companion.control.ghost import (
     brake_bound,
     coast_overshoot_m,
     ghost_capsules,
+    ghost_grid,
 )
 from companion.link.dialects import Mode, dialect_named
 from companion.link.dialects.base import AfterLoss, CarryOn, LossBehaviour
@@ -233,3 +234,28 @@ def test_the_measured_ardupilot_kill_lies_inside_its_ghost():
     p, v = np.array([0.0, 0.0, -10.0]), np.array([1.5, 0.0, 0.0])
     g = ghost_capsules(p, v, 0.0, loss, 2.0 / 3.0, 0.0, R, lag_s=0.0)
     assert g.contains(p + [[11.1, 0.0, 0.0], [7.4, 0.0, 0.0], [0.0, 0.0, 0.0]]).all()
+
+
+def test_ghost_grid_is_ghost_capsules_per_silent_entry_with_a_by_phase():
+    """The agents' grid (receiver x vehicle): each masked entry is ghost_capsules of its own
+    state and age with A by its last phase; unmasked entries have no capsule in use; a
+    non-finite velocity counts as rest."""
+    rng = np.random.default_rng(7)
+    pos, vel = rng.normal(0.0, 10.0, (2, 5, 3)), rng.normal(0.0, 1.5, (2, 5, 3))
+    vel[1, 4] = np.nan
+    age = rng.uniform(0.5, 3.0, (2, 5))
+    hover = rng.random((2, 5)) < 0.5
+    mask = np.zeros((2, 5), bool)
+    mask[0, [1, 3]] = mask[1, [0, 4]] = True
+    loss = _loss(AfterLoss.LAND)
+    g = ghost_grid(pos, vel, age, hover, mask, loss, 1.0, 0.4, 0.0, R, lag_s=0.5)
+    assert g.radius_m.shape == (2, 5, 3) and not g.use[~mask].any()
+    for r, j in zip(*np.nonzero(mask)):
+        v = np.nan_to_num(vel[r, j]) if not np.isfinite(vel[r, j]).all() else vel[r, j]
+        one = ghost_capsules(pos[r, j], v, age[r, j], loss, 1.0 if hover[r, j] else 0.4, 0.0, R, lag_s=0.5)
+        np.testing.assert_array_equal(g.use[r, j], one.use)
+        np.testing.assert_allclose(g.radius_m[r, j], one.radius_m, rtol=1e-12)
+        np.testing.assert_allclose(g.a_ned_m[r, j], one.a_ned_m, rtol=1e-12)
+        np.testing.assert_allclose(g.b_ned_m[r, j], one.b_ned_m, rtol=1e-12)
+    empty = ghost_grid(pos, vel, age, hover, np.zeros((2, 5), bool), loss, 1.0, 0.4, 0.0, R, lag_s=0.5)
+    assert not empty.use.any()

@@ -5,6 +5,7 @@ that answers PARAM_REQUEST_READ and PARAM_SET on a real UDP link, as PX4 and Ard
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 from pathlib import Path
 
@@ -17,6 +18,7 @@ from companion.link.enums import MavParamType, MavState, MavType, MsgId
 from companion.link.msgdef import swarmdrop as md
 from companion.link.params import decode_param_value, encode_param_value, param_name
 from companion.link.wire import Codec
+from companion.mission import LossEnvelope
 from companion.node.config import NodeConfig, load_mission_file
 from companion.node.exits import ExitCode, NodeFailure
 from companion.node.setup import Setup
@@ -116,13 +118,17 @@ class ParamAutopilot:
         self.ep.flush()
 
 
-async def _verify(dialect: str, table: dict, **cfg_kw):
-    """Run Setup.verify_loss against a ParamAutopilot; returns (result or the NodeFailure, autopilot)."""
+async def _verify(dialect: str, table: dict, envelope: LossEnvelope | None = None, **cfg_kw):
+    """Run Setup.verify_loss against a ParamAutopilot, with small_6's mission (its loss
+    envelope replaced if given); returns (result or the NodeFailure, autopilot)."""
     loop = asyncio.get_running_loop()
     ap = ParamAutopilot(dialect, table)
     ep = MavEndpoint(UdpLink(bind=("127.0.0.1", 0), remote=("127.0.0.1", ap.ep.link.local_port), learn_remote=False),
                      Codec(md), 1, 191)
     mf = load_mission_file(SMALL6)
+    if envelope is not None:
+        m = mf.mission
+        mf = dataclasses.replace(mf, mission=dataclasses.replace(m, swarm=dataclasses.replace(m.swarm, loss=envelope)))
     cfg = NodeConfig(vehicle_id=0, autopilot_url="udpout://127.0.0.1:14550", mission=mf, **cfg_kw)
     v = VehicleLink(ep, 1, mf.mission.origin, cfg.autopilot_url)
     heard = loop.create_future()
@@ -170,9 +176,9 @@ def test_allow_drifting_loss_flies_with_a_warning(caplog):
 
 def test_px4_hold_is_logged_in_one_info_line_with_its_values(caplog):
     caplog.set_level(logging.INFO, "swarmdrop.agent")
-    table = PX4_STOCK | {"COM_OBL_RC_ACT": (5, INT32), "COM_OF_LOSS_T": (0.5, REAL32), "MPC_ACC_HOR": (2.0, REAL32)}
+    table = PX4_STOCK | {"COM_OBL_RC_ACT": (5, INT32), "COM_OF_LOSS_T": (0.5, REAL32), "MPC_ACC_HOR": (2.5, REAL32)}
     loss, _ = asyncio.run(_verify("px4", table))
-    assert (loss.then, loss.timeout_s, loss.brake_hor_mps2) == (AfterLoss.HOLD, 0.5, 2.0)
+    assert (loss.then, loss.timeout_s, loss.brake_hor_mps2) == (AfterLoss.HOLD, 0.5, 2.5)
     lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("if this companion stops:")]
     assert len(lines) == 1 and "COM_OBL_RC_ACT 5" in lines[0] and "holds there for ever" in lines[0], lines
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
@@ -188,15 +194,17 @@ def test_a_deciding_parameter_not_served_is_refused_and_named():
 
 def test_braking_limits_not_served_fall_back_to_the_stock_values_with_a_warning(caplog):
     caplog.set_level(logging.INFO, "swarmdrop.agent")
-    loss, _ = asyncio.run(_verify("ardupilot", {"GUID_TIMEOUT": (2.0, REAL32)}))
-    assert (loss.then, loss.timeout_s, loss.brake_hor_mps2, loss.jerk_hor_mps3) == (AfterLoss.HOLD, 2.0, 2.5, 5.0)
+    loss, _ = asyncio.run(_verify("ardupilot", {"GUID_TIMEOUT": (0.5, REAL32)}))
+    assert (loss.then, loss.timeout_s, loss.brake_hor_mps2, loss.jerk_hor_mps3) == (AfterLoss.HOLD, 0.5, 2.5, 5.0)
     warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert any("WPNAV_ACCEL, WPNAV_ACCEL_Z, PSC_JERK_XY, PSC_JERK_Z" in w for w in warnings), warnings
 
 
 def test_set_loss_action_sets_the_parameter_says_so_and_then_verifies(caplog):
     caplog.set_level(logging.INFO, "swarmdrop.agent")
-    loss, ap = asyncio.run(_verify("px4", PX4_STOCK, set_loss_action="land"))
+    err, ap = asyncio.run(_verify("px4", PX4_STOCK, set_loss_action="land"))  # the mission assumes a hold
+    assert isinstance(err, NodeFailure) and "it lands where the mission assumes a hold" in str(err)
+    loss, ap = asyncio.run(_verify("px4", PX4_STOCK, LossEnvelope(then="land"), set_loss_action="land"))
     assert ap.sets == [("COM_OBL_RC_ACT", 4.0)] and ap.table["COM_OBL_RC_ACT"] == (4.0, INT32)
     assert loss.then == AfterLoss.LAND
     assert any("set COM_OBL_RC_ACT = 4 (was 0)" in r.getMessage() for r in caplog.records if r.levelno == logging.WARNING)
@@ -208,4 +216,42 @@ def test_set_loss_action_land_is_refused_on_ardupilot_which_always_holds():
     err, ap = asyncio.run(_verify("ardupilot", ARDUPILOT_STOCK, set_loss_action="land"))
     assert isinstance(err, NodeFailure) and "--set-loss-action land" in str(err) and "cannot" in str(err)
     held, ap = asyncio.run(_verify("ardupilot", ARDUPILOT_STOCK, set_loss_action="hold"))
-    assert held.then == AfterLoss.HOLD and not ap.sets
+    # GUIDED holds whatever its parameters; its stock 3 s timeout comes down to the mission's 1 s
+    assert held.then == AfterLoss.HOLD and held.timeout_s == 1.0 and ap.sets == [("GUID_TIMEOUT", 1.0)]
+
+
+def test_a_loss_beyond_the_missions_envelope_is_refused_naming_each_limit_and_the_fix(caplog):
+    """The swarm draws every ghost from mission.swarm.loss: an autopilot that coasts longer or
+    brakes softer can leave it. ArduPilot's stock GUID_TIMEOUT (3 s) and a soft PX4 stop."""
+    err, ap = asyncio.run(_verify("ardupilot", ARDUPILOT_STOCK))
+    assert isinstance(err, NodeFailure) and err.code == ExitCode.SETUP and not ap.sets
+    for part in ("its setpoint timeout 3 s is longer than the mission's 1 s", "set GUID_TIMEOUT to at most 1 s",
+                 "--set-loss-action", "mission.swarm.loss", "--allow-drifting-loss"):
+        assert part in str(err), str(err)
+    soft = PX4_STOCK | {"COM_OBL_RC_ACT": (5, INT32), "MPC_ACC_HOR": (2.0, REAL32), "MPC_JERK_AUTO": (3.0, REAL32)}
+    err, _ = asyncio.run(_verify("px4", soft))
+    assert isinstance(err, NodeFailure)
+    for part in ("its horizontal braking limit 2 is below the mission's 2.5",
+                 "its horizontal jerk limit 3 is below the mission's 4", "its vertical jerk limit 3"):
+        assert part in str(err), str(err)
+    caplog.set_level(logging.INFO, "swarmdrop.agent")
+    loss, ap = asyncio.run(_verify("ardupilot", ARDUPILOT_STOCK, allow_drifting_loss=True))
+    assert loss.timeout_s == 3.0 and not ap.sets
+    assert any("longer than the mission's 1 s" in r.getMessage() and "--allow-drifting-loss" in r.getMessage()
+               for r in caplog.records if r.levelno == logging.WARNING)
+
+
+def test_the_envelope_covers_the_stock_autopilots_once_set_and_draws_the_ghost_it_says():
+    env = LossEnvelope()
+    px4, ardupilot = dialect_named("px4"), dialect_named("ardupilot")
+    assert env.exceeded_by(px4.loss_behaviour({"COM_OBL_RC_ACT": 5})) == []  # Hold, every other PX4 default
+    assert env.exceeded_by(ardupilot.loss_behaviour({"GUID_TIMEOUT": 1.0})) == []
+    assert env.exceeded_by(ardupilot.loss_behaviour({})) == ["its setpoint timeout 3 s is longer than the mission's 1 s"]
+    assert env.exceeded_by(px4.loss_behaviour({"COM_OBL_RC_ACT": 4})) == ["it lands where the mission assumes a hold"]
+    lands = LossEnvelope(then="land")  # covers a hold and a landing
+    for then in (5, 4):
+        assert lands.exceeded_by(px4.loss_behaviour({"COM_OBL_RC_ACT": then})) == []
+    b = env.behaviour()
+    assert (b.timeout_s, b.then, b.brake_hor_mps2, b.brake_ver_mps2, b.jerk_hor_mps3, b.stop_lead_s) == (
+        1.0, AfterLoss.HOLD, 2.5, 1.0, 4.0, 0.6)
+    assert lands.behaviour().then == AfterLoss.LAND and lands.behaviour().descent_speed_mps == 0.7

@@ -73,6 +73,27 @@ def test_feed_forward_bound_and_px4_velocity_limits():
     np.testing.assert_array_equal(o.acc_ned_mps2[1], [0.0, 0.0, 1.0])
 
 
+def test_a_row_in_hover_gets_the_tighter_feed_forward_bound_and_nan_falls_back():
+    """AgentOutput.acc_ff_max_mps2 per row (HOVER: setpoint.acc_ff_hover_mps2): the bound is
+    applied to the plan and again after the slot-hold drive; never looser than the stage's."""
+    st = OutputStage(3, limits=LIM, acc_ff_max_mps2=3.0)
+    sp = _plan(3, [0.0, 0.0, -10.0], [0.0, 0.0, 0.0], [[0.0, 2.0, 0.0]] * 3)
+    st.set_plan(0.0, sp, np.ones(3, bool), acc_ff_max_mps2=np.array([1.0, np.nan, 5.0]))
+    o = st.step(0.0, np.zeros((3, 3)), np.zeros((3, 3)), np.full((3, 4), np.nan))
+    np.testing.assert_allclose(o.acc_ned_mps2, [[0.0, 1.0, 0.0], [0.0, 2.0, 0.0], [0.0, 2.0, 0.0]])
+    big = _plan(3, [0.0, 0.0, -10.0], [0.0, 0.0, 0.0], [[4.0, 0.0, 0.0]] * 3)
+    st.set_plan(1.0, big, np.ones(3, bool), acc_ff_max_mps2=np.array([1.0, np.nan, 5.0]))
+    o = st.step(1.0, np.zeros((3, 3)), np.zeros((3, 3)), np.full((3, 4), np.nan))
+    np.testing.assert_allclose(np.linalg.norm(o.acc_ned_mps2, axis=1), [1.0, 3.0, 3.0])
+    # with a drive: the P loops' pull comes out of the feed-forward, and the result is bounded again
+    st.stiffness[:] = 1.7
+    st.set_plan(2.0, _plan(3, [0.0, 0.0, -10.0], [0.0, 0.0, 0.0], [[0.9, 0.0, 0.0]] * 3), np.ones(3, bool),
+                np.array([[-1.0, 0.0, 0.0]] * 3), acc_ff_max_mps2=np.array([1.0, 1.0, 1.0]))
+    o = st.step(2.0, np.zeros((3, 3)), np.zeros((3, 3)), np.full((3, 4), np.nan))
+    np.testing.assert_allclose(o.acc_ned_mps2[:, 0], 1.0)  # 0.9 + 1.7 = 2.6, bounded to 1
+    np.testing.assert_allclose(o.pos_ned_m[:, 0], -1.0)
+
+
 def test_geofence_clips_the_position_and_stops_outward_motion_at_a_face():
     st = OutputStage(1, limits=LIM, acc_ff_max_mps2=3.0, geofence=((-10.0, -10.0, -20.0), (10.0, 10.0, 0.0)))
     st.set_plan(0.0, _plan(1, [30.0, 0.0, -5.0], [3.0, -1.0, 0.0], [1.0, 0.0, 0.0]), np.ones(1, bool))

@@ -6,7 +6,7 @@ for `timeout_s` the last setpoint keeps acting (the coast), then the autopilot b
 holds (HOLD), brakes and lands (LAND), descends with no horizontal control (DESCEND) or
 falls (MOTORS_OFF). `ghost_capsules` bounds every position that path can reach from the
 vehicle's last heard state, as up to three capsules (segment ends and a radius; a sphere
-when the ends meet), in the arrays `Agent._ghost_columns` and
+when the ends meet), in the arrays `Agent._repel_ghosts` (through `ghost_grid`) and
 `companion.control.apf.segment_repulsion_rows` use.
 
 The bounds (all closed form; docs/swarm.md, "Ghosts"), with p, v the last heard position
@@ -292,3 +292,38 @@ def coast_overshoot_m(speed_mps: float, timeout_s: float, accel_ff_max_mps2: flo
     """How far past its last heard position a vehicle can coast along its velocity before its
     autopilot acts on the loss: v T + A T^2 / 2 (docs/agent.md, "Companion loss"), m."""
     return speed_mps * timeout_s + 0.5 * accel_ff_max_mps2 * timeout_s * timeout_s
+
+
+def ghost_grid(pos_ned_m: np.ndarray, vel_ned_mps: np.ndarray, age_s: np.ndarray, hover: np.ndarray,
+               mask: np.ndarray, loss: LossBehaviour, accel_hover_mps2: float, accel_other_mps2: float,
+               ground_z_m: float | None, radius_m: float, *, lag_s: float) -> GhostCapsules:
+    """The swarm's ghosts on an agent's (R, N) receiver x vehicle grid (Agent's APF): the
+    capsules of `ghost_capsules` where mask is set, with A by the phase each silent vehicle
+    was last heard in (accel_hover_mps2 for HOVER, accel_other_mps2 otherwise), and no
+    capsule in use elsewhere. Only the masked entries are computed (ghosts are rare).
+
+    Args:
+        pos_ned_m, vel_ned_mps: (R, N, 3) last heard positions (m) and velocities (m/s);
+            a non-finite velocity counts as rest.
+        age_s: (R, N) their ages, s. hover: (R, N) bool, last heard in HOVER.
+        mask: (R, N) bool, which entries are ghosts.
+        loss, ground_z_m, radius_m, lag_s: as ghost_capsules.
+    Returns:
+        GhostCapsules of shape (R, N, K).
+    """
+    shape = mask.shape
+    a = np.zeros((*shape, N_CAPSULES, 3))
+    b = np.zeros((*shape, N_CAPSULES, 3))
+    rad = np.zeros((*shape, N_CAPSULES))
+    use = np.zeros((*shape, N_CAPSULES), bool)
+    idx = np.nonzero(mask)
+    if len(idx[0]):
+        p, v = pos_ned_m[idx], vel_ned_mps[idx]
+        v = np.where(np.isfinite(v), v, 0.0)
+        age, hov = age_s[idx], hover[idx]
+        for sel, acc in ((hov, accel_hover_mps2), (~hov, accel_other_mps2)):
+            if sel.any():
+                at = tuple(i[sel] for i in idx)
+                g = ghost_capsules(p[sel], v[sel], age[sel], loss, acc, ground_z_m, radius_m, lag_s=lag_s)
+                a[at], b[at], rad[at], use[at] = g.a_ned_m, g.b_ned_m, g.radius_m, g.use
+    return GhostCapsules(a, b, rad, use)

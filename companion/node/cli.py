@@ -74,12 +74,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "directory must exist (default none)")
     p.add_argument("--set-loss-action", choices=("hold", "land"), default=None,
                    help="set what the autopilot does when this companion stops, before flight: hold (PX4 "
-                        "COM_OBL_RC_ACT 5; ArduPilot GUIDED always holds) or land (PX4 COM_OBL_RC_ACT 4); the old "
-                        "value is logged (default: only read and verify it)")
+                        "COM_OBL_RC_ACT 5; ArduPilot GUIDED always holds) or land (PX4 COM_OBL_RC_ACT 4), and its "
+                        "setpoint timeout (COM_OF_LOSS_T, GUID_TIMEOUT) down to the mission's swarm.loss.timeout_s "
+                        "if longer; old values are logged (default: only read and verify them)")
     p.add_argument("--allow-drifting-loss", action="store_true",
                    help="fly although the autopilot's companion-loss parameters would leave the vehicle drifting, "
-                        "returning home or falling where the swarm's ghost does not cover it (a WARNING instead of "
-                        "refusing, exit 4) (default: refuse)")
+                        "returning home, falling, or beyond the mission's loss envelope (swarm.loss), where the "
+                        "swarm's ghost does not cover it (a WARNING instead of refusing, exit 4) (default: refuse)")
     p.add_argument("--strict", action="store_true",
                    help="refuse a mission with feasibility warnings too, not only errors (exit 2; "
                         "docs/scenario.md, 'Can it fly?') (default: warnings are logged)")

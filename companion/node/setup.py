@@ -377,8 +377,9 @@ class Setup:
         if stock:
             log.warning("%s does not answer for %s: the loss behaviour assumes the %s defaults", self.ap_name,
                         ", ".join(stock), d.name)
+        envelope = cfg.mission.mission.swarm.loss
         if cfg.set_loss_action is not None:
-            values = await self.set_loss_action(AfterLoss(cfg.set_loss_action), values)
+            values = await self.set_loss_action(AfterLoss(cfg.set_loss_action), values, envelope.timeout_s)
         loss = d.loss_behaviour(values)
         log.info("if this companion stops: %s", loss.describe())
         if not loss.safe:
@@ -388,11 +389,24 @@ class Setup:
             if not cfg.allow_drifting_loss:
                 raise NodeFailure(ExitCode.SETUP, text)
             log.warning("%s (--allow-drifting-loss: flying anyway)", text.split(". Fix:")[0])
+            return loss
+        over = envelope.exceeded_by(loss)
+        if over:
+            # The swarm draws this vehicle's ghost from the mission's envelope: beyond it, a
+            # silent vehicle can fly where its neighbours do not expect it.
+            text = (f"{self.ap_name}: if this companion stops, the vehicle can leave the ghost the swarm keeps "
+                    f"clear for it (mission.swarm.loss): {'; '.join(over)}. Fix: set {d.setpoint_timeout_param} "
+                    f"to at most {envelope.timeout_s:g} s (--set-loss-action does) or the limits named, or widen "
+                    "mission.swarm.loss for every vehicle; or --allow-drifting-loss to fly anyway")
+            if not cfg.allow_drifting_loss:
+                raise NodeFailure(ExitCode.SETUP, text)
+            log.warning("%s (--allow-drifting-loss: flying anyway)", text.split(". Fix:")[0])
         return loss
 
-    async def set_loss_action(self, then: AfterLoss, values: dict[str, float]) -> dict[str, float]:
-        """Set the parameters that make the autopilot do `then` on companion loss (each echo
-        checked), logging every change at WARNING with its old value.
+    async def set_loss_action(self, then: AfterLoss, values: dict[str, float], timeout_max_s: float) -> dict[str, float]:
+        """Set the parameters that make the autopilot do `then` on companion loss, and its
+        setpoint timeout down to timeout_max_s (the mission's loss envelope) if it is longer
+        (each echo checked), logging every change at WARNING with its old value.
 
         Raises:
             NodeFailure(SETUP): this autopilot cannot be set to do that.
@@ -403,6 +417,9 @@ class Setup:
             fix = d.loss_fix(then)
         except ValueError as err:
             raise NodeFailure(ExitCode.SETUP, f"--set-loss-action {then.value}: {err}") from None
+        timeout = values.get(d.setpoint_timeout_param)
+        if timeout is None or not timeout <= timeout_max_s:
+            fix = {**fix, d.setpoint_timeout_param: timeout_max_s}
         out = dict(values)
         for name, value in fix.items():
             old = out.get(name)
