@@ -6,7 +6,7 @@ for `timeout_s` the last setpoint keeps acting (the coast), then the autopilot b
 holds (HOLD), brakes and lands (LAND), descends with no horizontal control (DESCEND) or
 falls (MOTORS_OFF). `ghost_capsules` bounds every position that path can reach from the
 vehicle's last heard state, as up to three capsules (segment ends and a radius; a sphere
-when the ends meet), in the arrays `Agent._repel_ghosts` (through `ghost_grid`) and
+when the ends meet), in the arrays `companion.avoidance.Avoidance.ghosts` (through `ghost_grid`) and
 `companion.control.apf.segment_repulsion_rows` use.
 
 The bounds (all closed form; docs/swarm.md, "Ghosts"), with p, v the last heard position
