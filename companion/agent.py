@@ -34,7 +34,7 @@ from typing import Callable
 
 import numpy as np
 
-from companion.avoidance import Avoidance, settled_rows, vehicle_cutoff_m
+from companion.avoidance import Avoidance, neighbour_sets_rows, settled_rows, vehicle_cutoff_m
 from companion.commands.book import PlanBook, RefGroup
 from companion.commands.track import LAND as ROLE_LAND
 from companion.control.apf import clip_sum_rows, pair_repulsion_rows, segment_repulsion_rows
@@ -70,47 +70,6 @@ from companion.swarm import (
 def _norm_rows(a: np.ndarray) -> np.ndarray:
     """Euclidean norm along the last axis (cheaper than np.linalg.norm)."""
     return np.sqrt(np.einsum("...i,...i->...", a, a))
-
-
-@kernel
-def neighbour_sets_rows(rows, ids, p, v_pos, v_vel, v_flags, v_phase, age, stale_after_s, in_formation, cutoff_m,
-                        pred, usable, repel, ghost):
-    """Who each own row uses for what this tick (docs/agent.md, "Who takes part in what").
-
-    Row r (own vehicle ids[r], view row rows[r]) and vehicle j:
-      trusted: heard within stale_after_s, published with FLAG_OWN_VALID, position and
-        velocity finite (p.v not NaN), not the own vehicle;
-      pred[r, j] = p_j + v_j age (trusted), p_j otherwise;
-      usable: trusted and in a formation phase (consensus);
-      repel: trusted, airborne (phase >= STABILISE) and within cutoff_m of the own
-        position (pair repulsion; the kernel checks the cutoff again);
-      ghost: heard, not trusted, airborne, with a position, not the own vehicle.
-
-    Args: rows, ids (R,); p (R, 3); v_pos, v_vel (n, N, 3), v_flags, v_phase, age (n, N):
-        the whole view; in_formation: bool by phase value. Outputs pred (R, N, 3),
-        usable, repel, ghost (R, N) bool, written.
-    """
-    c2 = cutoff_m * cutoff_m
-    for r in range(rows.shape[0]):
-        vr, own = rows[r], ids[r]
-        for j in range(v_pos.shape[1]):
-            a = age[vr, j]
-            x0, x1, x2 = v_pos[vr, j, 0], v_pos[vr, j, 1], v_pos[vr, j, 2]
-            u0, u1, u2 = v_vel[vr, j, 0], v_vel[vr, j, 1], v_vel[vr, j, 2]
-            ph = v_phase[vr, j]
-            known = not math.isnan(x0 * u0 + x1 * u1 + x2 * u2)
-            tr = a <= stale_after_s and (v_flags[vr, j] & FLAG_OWN_VALID) != 0 and known and j != own
-            air = ph >= _STABILISE
-            if tr:
-                x0, x1, x2 = x0 + u0 * a, x1 + u1 * a, x2 + u2 * a
-            pred[r, j, 0], pred[r, j, 1], pred[r, j, 2] = x0, x1, x2
-            usable[r, j] = tr and in_formation[ph]
-            if tr and air:
-                d0, d1, d2 = x0 - p[r, 0], x1 - p[r, 1], x2 - p[r, 2]
-                repel[r, j] = d0 * d0 + d1 * d1 + d2 * d2 < c2
-            else:
-                repel[r, j] = False
-            ghost[r, j] = a < math.inf and not tr and air and not math.isnan(x0) and j != own
 
 
 @kernel
@@ -232,7 +191,6 @@ class AgentKernels:
     the simulator passes numba-compiled twins of the same functions (sim_bridge.world.jit)."""
 
     consensus_rows: Callable = consensus_rows
-    neighbour_sets_rows: Callable = neighbour_sets_rows
     pair_repulsion_rows: Callable = pair_repulsion_rows
     segment_repulsion_rows: Callable = segment_repulsion_rows
     clip_sum_rows: Callable = clip_sum_rows
@@ -445,7 +403,7 @@ class Agent:
         pred = np.empty((n_rows, n_veh, 3))
         usable, repel, ghost = (np.empty((n_rows, n_veh), np.bool_) for _ in range(3))
         cutoff = vehicle_cutoff_m(a)
-        kern.neighbour_sets_rows(rows, ids, p, view.pos_ned_m, view.vel_ned_mps, view.flags, view.phase, age,
+        neighbour_sets_rows(rows, ids, p, view.pos_ned_m, view.vel_ned_mps, view.flags, view.phase, age,
                                  sw.stale_after_s, IN_FORMATION, cutoff, pred, usable, repel, ghost)
         # Every own row flies formation (the usual case): the view's arrays, not row copies.
         whole = n_rows == view.n_receivers
