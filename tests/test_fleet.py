@@ -590,3 +590,27 @@ def test_a_mission_that_lands_completes_when_every_vehicle_is_down_and_passes_it
             armed[msg.get_srcSystem()] = bool(msg.base_mode & 128)
     assert armed == {k: False for k in range(1, N + 1)}
     assert not r.leftovers
+
+
+def test_agents_that_give_up_on_a_stopped_sitl_after_completion_do_not_abort_the_run(tmp_path):
+    """After MISSION COMPLETE the SITL writes its recording with its autopilots silent (seconds
+    on a loaded machine); agents that exit on LINK_LOST meanwhile have done their job: the run
+    is not aborted as "every agent has exited", and no agent is reported dead. Before
+    completion the same exits are a dead fleet."""
+    from sim_bridge.runs.fleet import Fleet, FleetOptions
+    from sim_bridge.scenario import load_scenario
+    from sim_bridge.sitl.status import SitlStatus
+
+    path = ROOT / "configs" / "ground_4.yaml"
+    fleet = Fleet(path, load_scenario(path), FleetOptions(out_dir=tmp_path, progress=False, figures=False))
+    (tmp_path / "agents").mkdir()
+    fleet.agents = [subprocess.Popen([sys.executable, "-c", "raise SystemExit(6)"]) for _ in range(fleet.n)]
+    for p in fleet.agents:
+        assert p.wait(timeout=30) == 6
+    fleet.status = SitlStatus(sim_s=40.0, rtf=1.0, attached=fleet.n, complete=True)
+    fleet._watch_agents(40.0)
+    assert fleet.dead == {} and fleet._hopeless() == ""
+    fleet.status = SitlStatus(sim_s=30.0, rtf=1.0, attached=fleet.n, complete=False)
+    fleet._watch_agents(30.0)
+    assert sorted(fleet.dead) == list(range(fleet.n))
+    assert fleet._hopeless().startswith("every agent has exited")

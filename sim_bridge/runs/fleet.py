@@ -440,8 +440,11 @@ class Fleet:
                 self.sitl_cpu = share
 
     def _watch_agents(self, sim_s: float) -> None:
-        if self.interrupted:
-            return  # agents stopping now are being stopped, not crashing
+        if self.interrupted or self.status.complete:
+            # agents stopping now are being stopped, not crashing; after MISSION COMPLETE the
+            # SITL writes its recording (seconds on a loaded machine) with its autopilots
+            # silent, and agents that give up on them (LINK_LOST) have done their job
+            return
         for k, p in enumerate(self.agents):
             if k in self.opts.kill and k not in self.killed and sim_s >= self.opts.kill[k]:
                 p.kill()
@@ -497,7 +500,7 @@ class Fleet:
         that exits before then means the clock never starts. Once it runs, the mission
         goes on while any agent lives (a killed or crashed one is the autopilot's to hold).
         """
-        if self.interrupted or not self.dead:
+        if self.interrupted or not self.dead or self.status.complete:
             return ""
         held = self.status.rtf is None and self.status.sim_s == 0.0  # the clock is still held
         if held:
