@@ -234,7 +234,13 @@ class AgentOutput:
     setpoint.acc_ff_hover_mps2 when settled at station (HOVER and slower than
     phases.assembled_speed_mps: companion.avoidance.settled_rows), so that the ghost of a
     vehicle silent there is small (docs/swarm.md, "Ghosts"); setpoint.acc_ff_max_mps2
-    otherwise (a vehicle still braking into its slot, or pushed by a gust, keeps its authority)."""
+    otherwise (a vehicle still braking into its slot, or pushed by a gust, keeps its authority).
+    Where tighter, it bounds the acceleration less acc_bias_ned_mps2."""
+    acc_bias_ned_mps2: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    """(n, 3) the part of each setpoint's acceleration that cancels the bias the agent has
+    learnt (-k_i z, companion.slot_hold; 0 outside formation), NED m/s^2: it moves nothing,
+    and keeps cancelling the bias when the companion falls silent, so acc_ff_max_mps2 leaves
+    it out."""
 
 
 class Agent:
@@ -522,10 +528,13 @@ class Agent:
         seq = book.plan_seq.copy()
         published = SwarmStates(self.ids.copy(), np.asarray(own.stamp_s, float).copy(), own.pos_ned_m.copy(),
                                 own.vel_ned_mps.copy(), q.copy(), phase.copy(), flags, self.t_go_s.copy(), seq)
+        bias = np.zeros((n, 3))
+        if len(rows) and cfg.consensus.ki_pos_per_s3 > 0:
+            bias[rows] = -cfg.consensus.ki_pos_per_s3 * self.slot_hold.z_ms[rows]
         return AgentOutput(sp, phase.copy(), self.assembled.copy(), self.t_go_s.copy(), valid, slot, published, seq,
                            self.handed_over.copy(), self.slot_hold.drive_ned_m.copy(),
                            np.where(settled_rows(phase, own.vel_ned_mps, cfg.phases.assembled_speed_mps),
-                                    cfg.setpoint.acc_ff_hover_mps2, cfg.setpoint.acc_ff_max_mps2))
+                                    cfg.setpoint.acc_ff_hover_mps2, cfg.setpoint.acc_ff_max_mps2), bias)
 
     def _plan_times(self, t_s: float, groups: list[RefGroup]) -> tuple[np.ndarray, np.ndarray]:
         """What each row's plan says of time (and ABORT): when its centre comes to rest, when it

@@ -28,8 +28,9 @@ def vehicle_cutoff_m(a: ApfConfig) -> float:
 
 def settled_rows(phase: np.ndarray, vel_ned_mps: np.ndarray, speed_max_mps: float) -> np.ndarray:
     """Settled at station: in HOVER and slower than speed_max_mps (phases.assembled_speed_mps).
-    The output stage holds such a vehicle's feed-forward to setpoint.acc_ff_hover_mps2, and a
-    silent vehicle last heard so gets a ghost with at most that A (docs/swarm.md, "Ghosts").
+    The output stage holds such a vehicle's feed-forward, less the bias the agent has learnt, to
+    setpoint.acc_ff_hover_mps2, and a silent vehicle last heard so gets a ghost with at most
+    that A (docs/swarm.md, "Ghosts").
 
     Args: phase (...) Phase values; vel_ned_mps (..., 3) m/s (NaN: not settled).
     Returns: (...) bool.

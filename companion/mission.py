@@ -215,8 +215,9 @@ class SwarmConfig:
     ghost_accel_mps2: float = Field(default=0.5, ge=0)
     """A, the acceleration feed-forward a silent vehicle's ghost allows, m/s^2: at most this,
     and at most the bound the output stage enforced in the state it was last heard in
-    (setpoint.acc_ff_hover_mps2 settled at station, acc_ff_max_mps2 otherwise), so the ghost
-    is a true bound only where that bound is the smaller (docs/swarm.md, "Ghosts")."""
+    (setpoint.acc_ff_hover_mps2 settled at station, on the feed-forward less the learnt bias;
+    acc_ff_max_mps2 otherwise), so the ghost is a true bound only where that bound is the
+    smaller: by default settled at station (docs/swarm.md, "Ghosts")."""
     loss: LossEnvelope = LossEnvelope()
     """What every autopilot of the mission does at worst when its companion falls silent: the
     swarm's shared model of a silent vehicle (every agent draws every ghost from it); each
@@ -301,14 +302,14 @@ class SetpointConfig:
     for COM_OF_LOSS_T), so it bounds the overshoot on loss: v T + acc_ff_max T^2 / 2
     (docs/agent.md). 3 m/s^2 is the consensus term's own bound; on paper_40 the planner asks
     more than that in 0.13 % of its commands (the repulsion, briefly)."""
-    acc_ff_hover_mps2: float = Field(default=3.0, gt=0)
+    acc_ff_hover_mps2: float = Field(default=0.5, gt=0)
     """The feed-forward bound for a vehicle settled at station (HOVER, slower than
-    phases.assembled_speed_mps), m/s^2, at most acc_ff_max_mps2. Set it at or under
-    swarm.ghost_accel_mps2 and the ghost of a vehicle that falls silent there is a true bound
-    (docs/swarm.md, "Ghosts"). Not by default: the feed-forward also carries the bias the
-    agent has learnt (paper_40's shipped bias needs up to 0.75 m/s^2 at station on seed 15);
-    0.5 left a vehicle circling its slot 0.3-0.6 m off on seed 2024, 0.75 and 1 did so on
-    seed 15."""
+    phases.assembled_speed_mps), m/s^2, at most acc_ff_max_mps2, on the acceleration *less the
+    bias the agent has learnt* (its slot-hold integral: that part moves nothing and keeps
+    cancelling the bias after a loss). At or under swarm.ghost_accel_mps2 (as by default) the
+    ghost of a vehicle that falls silent there is a true bound (docs/swarm.md, "Ghosts").
+    Bounding the whole feed-forward instead left vehicles circling their slots 0.3-0.6 m off
+    (paper_40's shipped bias needs up to 0.75 m/s^2 at station on seed 15)."""
     hover_thrust: HoverThrustConfig = HoverThrustConfig()
     """Attitude output's online hover-thrust estimate."""
 

@@ -14,7 +14,12 @@ lines in both (docs/agent.md, "The output stage"):
 3. **Feed-forward bound.** The acceleration sent is at most `acc_ff_max_mps2` (norm). It is
    what an autopilot keeps acting on when the companion falls silent (ArduPilot extrapolates
    velocity and acceleration for GUID_TIMEOUT; PX4 flies the last setpoint for
-   COM_OF_LOSS_T), so it bounds the overshoot: v T + A T^2 / 2 (docs/agent.md).
+   COM_OF_LOSS_T), so it bounds the overshoot: v T + A T^2 / 2 (docs/agent.md). A row
+   with a tighter bound of its own (settled at station: `set_plan`'s acc_ff_max_mps2) has
+   it on the acceleration *less the bias the agent has learnt* (its slot-hold integral,
+   acc_bias_ned_mps2): that part only cancels the vehicle's bias, and keeps cancelling it
+   after a loss, so it moves nothing; bounding it too would leave a biased vehicle off its
+   slot (docs/swarm.md, "Ghosts").
 4. **Limits.** PX4's offboard velocity limits (companion.link.limits, the same functions the
    SITL applies to what it receives): nothing the autopilot would clamp is sent.
 5. **Geofence.** `mission.geofence`: the position is clipped into the box, and at a face the
@@ -133,17 +138,19 @@ class HoverThrustEstimator:
 
 
 @kernel
-def trajectory_rows(t_s, plan_t, kind, pp, pv, pa, drive, stiff, own_p, lim, ff_max, fence, out_kind, out_p, out_v,
-                    out_a):
+def trajectory_rows(t_s, plan_t, kind, pp, pv, pa, bias, drive, stiff, own_p, lim, ff_cap, ff_max, fence, out_kind,
+                    out_p, out_v, out_a):
     """Steps 1-5 of the module docstring for every row: the trajectory setpoint now.
 
     Args:
         t_s: now, mission time, s. plan_t (n,) when each row's plan was made, s; kind (n,)
             PLAN_*; pp, pv, pa (n, 3) the plan's position, velocity, acceleration (mission NED;
-            NaN axes not commanded); own_p (n, 3) the vehicles' positions (the fence's faces).
-        lim: (3,) horizontal speed, climb speed and descent speed limits (m/s); ff_max (n,)
-            each row's acceleration feed-forward bound (m/s^2); fence: (7,) 1/0 fence on, then its
-            min (3,) and max (3,) corners, mission NED m.
+            NaN axes not commanded); bias (n, 3) the learnt bias in pa (finite), m/s^2;
+            own_p (n, 3) the vehicles' positions (the fence's faces).
+        lim: (3,) horizontal speed, climb speed and descent speed limits (m/s); ff_cap the
+            acceleration feed-forward bound (m/s^2); ff_max (n,) each row's own bound on its
+            acceleration less its bias, where under ff_cap (m/s^2); fence: (7,) 1/0 fence on,
+            then its min (3,) and max (3,) corners, mission NED m.
     Written: out_kind (n,) SEND_NOTHING or SEND_TRAJECTORY; out_p, out_v, out_a (n, 3).
     """
     for i in range(kind.shape[0]):
@@ -155,9 +162,16 @@ def trajectory_rows(t_s, plan_t, kind, pp, pv, pa, drive, stiff, own_p, lim, ff_
             continue
         out_kind[i] = SEND_TRAJECTORY
         a0, a1, a2 = pa[i, 0], pa[i, 1], pa[i, 2]
+        if ff_max[i] < ff_cap:  # the row's own bound, on what moves the vehicle: a less the bias
+            b0, b1, b2 = bias[i, 0], bias[i, 1], bias[i, 2]
+            m0, m1, m2 = a0 - b0, a1 - b1, a2 - b2
+            mn = math.sqrt(m0 * m0 + m1 * m1 + m2 * m2)
+            if mn > ff_max[i]:  # (False for NaN)
+                s = ff_max[i] / mn
+                a0, a1, a2 = b0 + m0 * s, b1 + m1 * s, b2 + m2 * s
         an = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-        if an > ff_max[i]:  # (False for NaN: an acceleration not commanded stays so)
-            s = ff_max[i] / an
+        if an > ff_cap:  # (False for NaN: an acceleration not commanded stays so)
+            s = ff_cap / an
             a0, a1, a2 = a0 * s, a1 * s, a2 * s
         p0, p1, p2 = pp[i, 0], pp[i, 1], pp[i, 2]
         v0, v1, v2 = pv[i, 0], pv[i, 1], pv[i, 2]
@@ -171,8 +185,8 @@ def trajectory_rows(t_s, plan_t, kind, pp, pv, pa, drive, stiff, own_p, lim, ff_
                 p0, p1, p2 = p0 + d0, p1 + d1, p2 + d2
                 a0, a1, a2 = a0 - stiff[i, 0] * d0, a1 - stiff[i, 1] * d1, a2 - stiff[i, 2] * d2
                 an = math.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
-                if an > ff_max[i]:
-                    s = ff_max[i] / an
+                if an > ff_cap:  # (the pull it cancels moves nothing: only the stage's bound)
+                    s = ff_cap / an
                     a0, a1, a2 = a0 * s, a1 * s, a2 * s
         v0, v1, v2 = clamp_velocity3(v0, v1, v2, lim[0], lim[1], lim[2])
         if fence[0] > 0.0:
@@ -275,7 +289,10 @@ class OutputStage:
         self.lim = np.array([limits.xy_vel_max_mps, limits.z_vel_max_up_mps, limits.z_vel_max_dn_mps])
         self.acc_ff_max_mps2 = float(acc_ff_max_mps2)
         self.ff_max = np.full(n, self.acc_ff_max_mps2)
-        """(n,) each row's feed-forward bound for its plan (set_plan), m/s^2."""
+        """(n,) each row's feed-forward bound for its plan (set_plan), m/s^2: on the acceleration
+        less the learnt bias where under acc_ff_max_mps2."""
+        self.bias = np.zeros((n, 3))
+        """(n, 3) the learnt bias in each row's plan acceleration (set_plan), m/s^2."""
         self.fence = np.zeros(7)
         if geofence is not None:
             self.fence[0], self.fence[1:4], self.fence[4:7] = 1.0, geofence[0], geofence[1]
@@ -307,7 +324,7 @@ class OutputStage:
             self.stiffness[rows] = loop.stiffness_per_s2()
 
     def set_plan(self, t_s: float, sp: FleetSetpoint, q_ok: np.ndarray, drive_ned_m: np.ndarray | None = None,
-                 acc_ff_max_mps2: np.ndarray | None = None) -> None:
+                 acc_ff_max_mps2: np.ndarray | None = None, acc_bias_ned_mps2: np.ndarray | None = None) -> None:
         """Keep the planner's setpoint (mission frame) as each row's plan from t_s.
 
         Args:
@@ -317,11 +334,18 @@ class OutputStage:
             drive_ned_m: (n, 3) the slot-hold drive (AgentOutput.drive_ned_m), m; None: none.
                 Ignored in attitude output and where not finite.
             acc_ff_max_mps2: (n,) each row's feed-forward bound for this plan
-                (AgentOutput.acc_ff_max_mps2: tighter in HOVER), m/s^2, at most the stage's;
+                (AgentOutput.acc_ff_max_mps2: tighter settled at station), m/s^2, at most the
+                stage's; where tighter, it bounds the acceleration less acc_bias_ned_mps2.
                 None: the stage's bound.
+            acc_bias_ned_mps2: (n, 3) the bias the agent has learnt, in sp's acceleration
+                (AgentOutput.acc_bias_ned_mps2), m/s^2; None or not finite: 0.
         """
         self.ff_max[:] = self.acc_ff_max_mps2 if acc_ff_max_mps2 is None else \
             np.fmin(np.where(np.isfinite(acc_ff_max_mps2), acc_ff_max_mps2, self.acc_ff_max_mps2), self.acc_ff_max_mps2)
+        if acc_bias_ned_mps2 is None:
+            self.bias.fill(0.0)
+        else:
+            self.bias[:] = np.where(np.isfinite(acc_bias_ned_mps2), acc_bias_ned_mps2, 0.0)
         if drive_ned_m is None or self.attitude:
             self.drive.fill(0.0)
         else:
@@ -350,9 +374,8 @@ class OutputStage:
         """
         o, pl = self.out, self.plan
         self.kernels.trajectory_rows(t_s, self.plan_t, self.kind, pl.pos_ned_m, pl.vel_ned_mps, pl.acc_ned_mps2,
-                                     self.drive, self.stiffness, own_pos, self.lim, self.ff_max,
-                                     self.fence, o.send, o.pos_ned_m, o.vel_ned_mps,
-                                     o.acc_ned_mps2)
+                                     self.bias, self.drive, self.stiffness, own_pos, self.lim, self.acc_ff_max_mps2,
+                                     self.ff_max, self.fence, o.send, o.pos_ned_m, o.vel_ned_mps, o.acc_ned_mps2)
         o.yaw_rad[:] = pl.yaw_rad
         o.yaw_rate_radps[:] = pl.yaw_rate_radps
         if self.attitude:

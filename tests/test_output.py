@@ -74,8 +74,9 @@ def test_feed_forward_bound_and_px4_velocity_limits():
 
 
 def test_a_row_in_hover_gets_the_tighter_feed_forward_bound_and_nan_falls_back():
-    """AgentOutput.acc_ff_max_mps2 per row (HOVER: setpoint.acc_ff_hover_mps2): the bound is
-    applied to the plan and again after the slot-hold drive; never looser than the stage's."""
+    """AgentOutput.acc_ff_max_mps2 per row (settled at station: setpoint.acc_ff_hover_mps2):
+    the bound is applied to the plan, never looser than the stage's; after the slot-hold drive
+    only the stage's (the pull taken out cancels the P loops' and moves nothing)."""
     st = OutputStage(3, limits=LIM, acc_ff_max_mps2=3.0)
     sp = _plan(3, [0.0, 0.0, -10.0], [0.0, 0.0, 0.0], [[0.0, 2.0, 0.0]] * 3)
     st.set_plan(0.0, sp, np.ones(3, bool), acc_ff_max_mps2=np.array([1.0, np.nan, 5.0]))
@@ -85,13 +86,29 @@ def test_a_row_in_hover_gets_the_tighter_feed_forward_bound_and_nan_falls_back()
     st.set_plan(1.0, big, np.ones(3, bool), acc_ff_max_mps2=np.array([1.0, np.nan, 5.0]))
     o = st.step(1.0, np.zeros((3, 3)), np.zeros((3, 3)), np.full((3, 4), np.nan))
     np.testing.assert_allclose(np.linalg.norm(o.acc_ned_mps2, axis=1), [1.0, 3.0, 3.0])
-    # with a drive: the P loops' pull comes out of the feed-forward, and the result is bounded again
+    # with a drive: the P loops' pull comes out of the feed-forward, bounded by the stage's bound
     st.stiffness[:] = 1.7
     st.set_plan(2.0, _plan(3, [0.0, 0.0, -10.0], [0.0, 0.0, 0.0], [[0.9, 0.0, 0.0]] * 3), np.ones(3, bool),
-                np.array([[-1.0, 0.0, 0.0]] * 3), acc_ff_max_mps2=np.array([1.0, 1.0, 1.0]))
+                np.array([[-1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [-2.0, 0.0, 0.0]]), acc_ff_max_mps2=np.ones(3))
     o = st.step(2.0, np.zeros((3, 3)), np.zeros((3, 3)), np.full((3, 4), np.nan))
-    np.testing.assert_allclose(o.acc_ned_mps2[:, 0], 1.0)  # 0.9 + 1.7 = 2.6, bounded to 1
-    np.testing.assert_allclose(o.pos_ned_m[:, 0], -1.0)
+    np.testing.assert_allclose(o.acc_ned_mps2[:, 0], [2.6, 2.6, 3.0])  # 0.9 + 1.7 d: 2.6; 4.3 bounded to 3
+    np.testing.assert_allclose(o.pos_ned_m[:, 0], [-1.0, -1.0, -2.0])
+
+
+def test_the_tighter_bound_leaves_out_the_bias_the_agent_has_learnt():
+    """A settled row's bound is on its acceleration less the learnt bias (AgentOutput.
+    acc_bias_ned_mps2): the bias part moves nothing, so it is sent whole; what would move
+    the vehicle is bounded; the stage's bound still caps the sum; a row at the stage's bound
+    is bounded as before, its bias ignored; a bias not finite counts as 0."""
+    st = OutputStage(5, limits=LIM, acc_ff_max_mps2=3.0)
+    a = [[0.8, 0.0, 0.0], [0.7, 1.0, 0.0], [0.8, 0.0, 0.0], [3.0, 2.0, 0.0], [-2.5, 0.0, 0.0]]
+    bias = [[0.7, 0.0, 0.0], [0.7, 0.0, 0.0], [np.nan, 0.0, 0.0], [3.0, 0.0, 0.0], [1.5, 0.0, 0.0]]
+    st.set_plan(0.0, _plan(5, [0.0, 0.0, -10.0], [0.0, 0.0, 0.0], a), np.ones(5, bool),
+                acc_ff_max_mps2=np.array([0.5, 0.5, 0.5, 0.5, 3.0]), acc_bias_ned_mps2=np.array(bias))
+    o = st.step(0.0, np.zeros((5, 3)), np.zeros((5, 3)), np.full((5, 4), np.nan))
+    capped = np.array([3.0, 0.5, 0.0]) * 3.0 / math.hypot(3.0, 0.5)  # 3.04 over the stage's bound
+    np.testing.assert_allclose(o.acc_ned_mps2, [[0.8, 0.0, 0.0], [0.7, 0.5, 0.0], [0.5, 0.0, 0.0], capped,
+                                                [-2.5, 0.0, 0.0]], atol=1e-12)
 
 
 def test_geofence_clips_the_position_and_stops_outward_motion_at_a_face():

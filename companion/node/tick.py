@@ -269,7 +269,7 @@ class TickPath:
             log.info("phase %s -> %s at t=%.2f s", self.phase.name, phase.name, t)
             self.phase = phase
         self.output.set_plan(t, out.setpoint, np.isfinite(q).all(keepdims=True), out.drive_ned_m,
-                             out.acc_ff_max_mps2)
+                             out.acc_ff_max_mps2, out.acc_bias_ned_mps2)
         self.planned = True
 
     def _relay(self, t: float) -> None:

@@ -225,7 +225,7 @@ def run_batch(cfgs: list[ScenarioConfig], progress: bool = False, clock=None,
         published = out.published.select(publish_all[offset]) if per_run else None
         for observe in TICK_OBSERVERS:
             observe(t, published)
-        output.set_plan(t, out.setpoint, q_known, out.drive_ned_m, out.acc_ff_max_mps2)
+        output.set_plan(t, out.setpoint, q_known, out.drive_ned_m, out.acc_ff_max_mps2, out.acc_bias_ned_mps2)
         output.step(t, own.pos_ned_m, own.vel_ned_mps, own.att_q_wxyz)
         sp = autopilot.setpoint(state, output.setpoint, t)
         autopilot.detect_landing(t, state)
