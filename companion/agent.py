@@ -410,7 +410,7 @@ class Agent:
         usable, repel, ghost = (np.empty((n_rows, n_veh), np.bool_) for _ in range(3))
         cutoff = vehicle_cutoff_m(a)
         neighbour_sets_rows(rows, ids, p, view.pos_ned_m, view.vel_ned_mps, view.flags, view.phase, age,
-                                 sw.stale_after_s, IN_FORMATION, cutoff, pred, usable, repel, ghost)
+                            sw.stale_after_s, IN_FORMATION, cutoff, pred, usable, repel, ghost)
         # Every own row flies formation (the usual case): the view's arrays, not row copies.
         whole = n_rows == view.n_receivers
         vv = view.vel_ned_mps if whole else view.vel_ned_mps[rows]
@@ -529,8 +529,7 @@ class Agent:
         published = SwarmStates(self.ids.copy(), np.asarray(own.stamp_s, float).copy(), own.pos_ned_m.copy(),
                                 own.vel_ned_mps.copy(), q.copy(), phase.copy(), flags, self.t_go_s.copy(), seq)
         bias = np.zeros((n, 3))
-        if len(rows) and cfg.consensus.ki_pos_per_s3 > 0:
-            bias[rows] = -cfg.consensus.ki_pos_per_s3 * self.slot_hold.z_ms[rows]
+        bias[rows] = self.slot_hold.bias_accel(rows)
         return AgentOutput(sp, phase.copy(), self.assembled.copy(), self.t_go_s.copy(), valid, slot, published, seq,
                            self.handed_over.copy(), self.slot_hold.drive_ned_m.copy(),
                            np.where(settled_rows(phase, own.vel_ned_mps, cfg.phases.assembled_speed_mps),

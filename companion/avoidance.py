@@ -132,7 +132,7 @@ class Avoidance:
         usable, repel, ghost = (np.empty((n_rows, k), np.bool_) for _ in range(3))
         cutoff = vehicle_cutoff_m(a)
         neighbour_sets_rows(rows, nobody, p, it.pos_ned_m, it.vel_ned_mps, it.flags, it.phase, age,
-                                 sw.stale_after_s, IN_FORMATION, cutoff, pred, usable, repel, ghost)
+                            sw.stale_after_s, IN_FORMATION, cutoff, pred, usable, repel, ghost)
         kern.pair_repulsion_rows(p, v, pred, it.vel_ned_mps[rows], repel, nobody, a.vehicle_gain_mps2,
                                  a.vehicle_influence_m, cutoff, a.kappa, a.closing_decel_mps2, u2)
         if ghost.any():

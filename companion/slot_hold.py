@@ -115,7 +115,12 @@ class SlotIntegral:
                 dn = np.sqrt(np.einsum("ij,ij->i", d, d))
                 drive[go] = d * np.minimum(1.0, si.drive_max_m / np.maximum(dn, 1e-300))[:, None]
         self.drive_ned_m[rows] = drive
-        u1 -= ki * z
+        u1 += self.bias_accel(rows)
+
+    def bias_accel(self, rows) -> np.ndarray:
+        """(R, 3) the acceleration the rows' integral adds to eq. 27, -k_i z, NED m/s^2: the bias
+        learnt so far (AgentOutput.acc_bias_ned_mps2; 0 with consensus.ki_pos_per_s3 0)."""
+        return -self.cfg.consensus.ki_pos_per_s3 * self.z_ms[rows]
 
     def clear_drive(self) -> None:
         """No drive this step (rows outside formation send none)."""
