@@ -167,7 +167,7 @@ def agent_startup(tmp: Path) -> dict:
         while time.monotonic() < deadline and not (stats.exists() and "setup_s" in stats.read_text()):
             time.sleep(0.2)
         time.sleep(6.0)  # a measurement window, not synchronisation: PSS once the agent has flown a while
-        from sim_bridge.runs.fleet import pss_mb
+        from sim_bridge.runs.procs import pss_mb
 
         pss = pss_mb(agent.pid)
         s = json.loads(stats.read_text())
@@ -175,7 +175,7 @@ def agent_startup(tmp: Path) -> dict:
                 "note": "startup = process start to a constructed node (imports, mission file, sockets); "
                         "setup = then to flying (streams, clock, EKF origin, parameters)"}
     finally:
-        from sim_bridge.runs.fleet import terminate_all
+        from sim_bridge.runs.procs import terminate_all
 
         terminate_all((agent, sitl))
 

@@ -22,7 +22,7 @@ import timeit
 
 from pymavlink.dialects.v20 import common
 
-from companion.link import wire
+from companion.link import framing, wire
 from companion.link.msgdef import swarmdrop as sd
 
 SYSID, COMPID, SEQ = 7, 1, 42
@@ -108,7 +108,7 @@ def run(number: int = 20_000, repeat: int = 5) -> dict:
     c_frame = sd.MAVLink_local_position_ned_message(1, 1.0, 2.0, 3.0, 0.0, 0.0, 0.0).pack(sd.MAVLink(None, 1, 1))
     return {
         "benchmark": "wire_codec",
-        "crc_backend": wire.CRC_BACKEND,
+        "crc_backend": framing.CRC_BACKEND,
         "cases": cases,
         "common_dialect_local_position_ned_decode_us": _best_us(lambda: c_codec.decode(c_frame), number, repeat),
         "host": {"python": platform.python_version(), "machine": platform.machine(), "cpus": os.cpu_count()},

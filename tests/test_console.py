@@ -394,7 +394,7 @@ def test_commands_are_checked_signed_and_sent_as_plans(tmp_path):
             assert time.monotonic() < deadline, "no plan on the wire"
             select.select([peer], [], [], 0.2)
             data = peer.recv(65536)
-            from companion.link.wire import split_datagram
+            from companion.link.framing import split_datagram
 
             for f in split_datagram(data)[0]:
                 assert check.check(f), "an unsigned or forged command frame"
@@ -458,7 +458,7 @@ def test_radio_copies_states_to_monitors_and_forwards_plans_to_every_vehicle():
     dest = ("127.0.0.1", radio.port)
 
     def drain(sock) -> list:
-        from companion.link.wire import split_datagram
+        from companion.link.framing import split_datagram
 
         out = []
         while True:

@@ -210,8 +210,9 @@ def test_synthetic_feed_of_six_vehicles_drawn_moving_and_tabled(browser, tmp_pat
 def _plans_received(sock: socket.socket, seq: int, timeout_s: float = 5.0) -> list[dict]:
     """SWARMDROP_PLANs received on sock until one with this seq (decoded field by field)."""
     from companion.link.enums import MsgId
+    from companion.link.framing import split_datagram
     from companion.link.msgdef import swarmdrop as sd
-    from companion.link.wire import Codec, split_datagram
+    from companion.link.wire import Codec
 
     codec = Codec(sd)
     out: list[dict] = []

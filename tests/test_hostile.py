@@ -196,8 +196,9 @@ def test_partial_nan_position_is_invalid_and_stops_the_vehicle():
 
 def test_unknown_incompat_flags_are_dropped():
     """The reference C parser drops frames with incompat flags other than signing (0x01)."""
+    from companion.link.framing import FrameError
     from companion.link.msgdef import swarmdrop
-    from companion.link.wire import Codec, FrameError
+    from companion.link.wire import Codec
 
     codec = Codec(mavlink, swarmdrop)
     good = bytearray(pack_frame(mavlink.MAVLink_heartbeat_message(2, 12, 0, 0, 0, 3)))

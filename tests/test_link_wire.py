@@ -16,14 +16,11 @@ from pymavlink.dialects.v20 import common, python_array_test
 from pymavlink.dialects.v20 import test as pymavlink_test
 from pymavlink.generator.mavcrc import x25crc_slow
 
-from companion.link import wire
-from companion.link.msgdef import generate
-from companion.link.msgdef import swarmdrop as sd
-from companion.link.wire import (
+from companion.link import framing, wire
+from companion.link.framing import (
     BadCrc,
     BadLength,
     BadMagic,
-    Codec,
     EncodeError,
     FrameError,
     FrameSplitter,
@@ -34,6 +31,9 @@ from companion.link.wire import (
     crc16_x25_hqx,
     signature_of,
 )
+from companion.link.msgdef import generate
+from companion.link.msgdef import swarmdrop as sd
+from companion.link.wire import Codec
 
 INT_RANGES = {"int8_t": (-128, 127), "uint8_t": (0, 255), "int16_t": (-2**15, 2**15 - 1),
               "uint16_t": (0, 2**16 - 1), "int32_t": (-2**31, 2**31 - 1), "uint32_t": (0, 2**32 - 1),
@@ -135,13 +135,19 @@ def test_crc_matches_pymavlink_for_random_buffers():
 
 
 def test_codec_without_fastcrc_uses_the_binascii_path(monkeypatch):
-    """Load a second copy of wire.py with fastcrc unimportable: same frames, same CRCs."""
+    """Load second copies of framing.py and wire.py with fastcrc unimportable: same frames,
+    same CRCs."""
     monkeypatch.setitem(sys.modules, "fastcrc", None)
     monkeypatch.setitem(sys.modules, "fastcrc.crc16", None)
+    spec = importlib.util.spec_from_file_location("_framing_no_fastcrc", framing.__file__)
+    slow_framing = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(slow_framing)
+    assert slow_framing.CRC_BACKEND == "binascii" and framing.CRC_BACKEND == "fastcrc"
+    monkeypatch.setitem(sys.modules, "companion.link.framing", slow_framing)  # what the copy of wire.py imports
     spec = importlib.util.spec_from_file_location("_wire_no_fastcrc", wire.__file__)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
-    assert mod.CRC_BACKEND == "binascii" and wire.CRC_BACKEND == "fastcrc"
+    assert mod._crc is slow_framing.crc16_x25_hqx
     rng = random.Random(2)
     slow = mod.Codec(sd)
     for cls in sd.mavlink_map.values():
@@ -263,7 +269,7 @@ def test_extension_fields_and_defaults(codec):
     body[0] += 4
     body += b"\x01\x02\x03\x04"  # 4 bytes of fields we do not know, valid CRC
     crc_extra = sd.MAVLink_swarmdrop_tick_message.crc_extra
-    longer = b"\xfd" + bytes(body) + wire._crc_with_extra(bytes(body), crc_extra).to_bytes(2, "little")
+    longer = b"\xfd" + bytes(body) + framing._crc_with_extra(bytes(body), crc_extra).to_bytes(2, "little")
     assert codec.decode(longer).time_usec == t_us
 
 
@@ -377,7 +383,7 @@ def test_fuzz_mutated_frames_raise_only_frame_errors(codec):
             msgid = (f[7] | f[8] << 8 | f[9] << 16) if hl == 10 and len(f) >= 10 else f[5]
             extra = codec.crc_extra(msgid)
             if extra is not None and end + 2 <= len(f):
-                f[end:end + 2] = wire._crc_with_extra(bytes(f[1:end]), extra).to_bytes(2, "little")
+                f[end:end + 2] = framing._crc_with_extra(bytes(f[1:end]), extra).to_bytes(2, "little")
         try:
             codec.decode(bytes(f))
             outcome = "ok"

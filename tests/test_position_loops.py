@@ -13,16 +13,10 @@ from companion.params import GRAVITY_MPS2, InnerLoopConfig, VehicleParams
 from companion.state import FleetSetpoint
 from sim_bridge.sitl.autopilots import autopilot_named
 from sim_bridge.sitl.params_table import ParamTable
-from sim_bridge.world.autopilot_model import (
-    LOOP_ARDUPILOT,
-    LOOP_PX4,
-    AutopilotConfig,
-    PositionController,
-    PositionLoopGains,
-    hover_thrust_errors,
-)
+from sim_bridge.world.autopilot_model import AutopilotConfig, hover_thrust_errors
 from sim_bridge.world.estimator import EstimatorConfig, bias_disturbance_ned_mps2
 from sim_bridge.world.physics import Physics, WindConfig, hover_state, hover_thrust_norm
+from sim_bridge.world.position_loop import LOOP_ARDUPILOT, LOOP_PX4, PositionController, PositionLoopGains
 
 CRAZYFLIE_DRAG = 0.0065
 """N/(m/s): docs/vehicle.md's drag coefficient for a disturbed world."""

@@ -15,9 +15,10 @@ import pytest
 from companion.commands import CommandEntry, PlanAssembler
 from companion.config import replace
 from companion.link.enums import MsgId
+from companion.link.framing import split_datagram
 from companion.link.msgdef import swarmdrop as sd
 from companion.link.signing import Signing, write_key
-from companion.link.wire import Codec, split_datagram
+from companion.link.wire import Codec
 from companion.mission import Mission
 from sim_bridge.scenario import load_scenario
 from sim_bridge.sitl.commands import REPEAT_S, REPEATS, SOURCE_COMPID, SOURCE_SYSID, SitlCommands

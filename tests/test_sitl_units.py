@@ -21,8 +21,8 @@ from sim_bridge.sitl.params_table import (
     encode_param_value,
 )
 from sim_bridge.sitl.server import SitlServer
-from sim_bridge.world.autopilot_model import G_POS_P_XY
 from sim_bridge.world.carrier import AttitudeDistribution, CarrierConfig
+from sim_bridge.world.position_loop import G_POS_P_XY
 
 NAN = math.nan
 I3 = np.eye(3)

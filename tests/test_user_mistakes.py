@@ -299,7 +299,8 @@ def test_sitl_signing_key_without_signing_is_refused(tmp_path):
 
 # ============================================================================ 6. ports past 65535
 def test_fleet_base_port_range_must_end_within_65535(tmp_path):
-    from sim_bridge.runs.fleet import FleetOptions, check_base_port, choose_ports, run_fleet
+    from sim_bridge.runs.fleet import FleetOptions, run_fleet
+    from sim_bridge.runs.procs import check_base_port, choose_ports
 
     with pytest.raises(ConfigError, match=r"--base-port 65530: .* 19 consecutive UDP ports, 65530\.\.65548.*65517"):
         check_base_port(6, 65530)

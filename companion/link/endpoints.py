@@ -35,10 +35,11 @@ import os
 import socket
 from typing import Any, Callable, Sequence
 
+from companion.link.framing import MAGIC_V2, EncodeError, FrameError, FrameSplitter, UnknownMessage, split_datagram
 from companion.link.signing import TRUSTED, UNSIGNED, Signing
 from companion.link.tlog import Tlog
 from companion.link.urls import EndpointError, LinkAddress, parse_url  # noqa: F401  (re-exported)
-from companion.link.wire import MAGIC_V2, Codec, EncodeError, FrameError, FrameSplitter, UnknownMessage, split_datagram
+from companion.link.wire import Codec
 
 MAX_DATAGRAMS_PER_RECV = 512
 """A recv() call returns after this many datagrams even if more are waiting, so a

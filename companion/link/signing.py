@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Any, Callable, Literal, Protocol, Sequence
 
 from companion.link.enums import MsgId
-from companion.link.wire import IFLAG_SIGNED, MAGIC_V2, MAGIC_V2_BYTES, SIGNATURE_LEN, _crc_with_extra
+from companion.link.framing import IFLAG_SIGNED, MAGIC_V2, MAGIC_V2_BYTES, SIGNATURE_LEN, _crc_with_extra
 
 SigningMode = Literal["off", "optional", "require"]
 MODES: tuple[str, ...] = ("off", "optional", "require")

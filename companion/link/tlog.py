@@ -16,8 +16,8 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 from companion.link.enums import MsgId
+from companion.link.framing import HEADER_LEN_V1, HEADER_LEN_V2, IFLAG_SIGNED, MAGIC_V1, MAGIC_V2, SIGNATURE_LEN, _crc_with_extra
 from companion.link.msgdef.swarmdrop import MAVLink_setup_signing_message
-from companion.link.wire import HEADER_LEN_V1, HEADER_LEN_V2, IFLAG_SIGNED, MAGIC_V1, MAGIC_V2, SIGNATURE_LEN, _crc_with_extra
 
 _STAMP = struct.Struct(">Q")
 SETUP_SIGNING_CRC_EXTRA = MAVLink_setup_signing_message.crc_extra

@@ -45,10 +45,11 @@ from companion.link.enums import (  # noqa: E402
     MsgId,
     PositionTargetTypemask,
 )
+from companion.link.framing import _crc_with_extra, split_datagram
 from companion.link.msgdef import swarmdrop as sd  # noqa: E402
-from companion.link.wire import Codec, _crc_with_extra, split_datagram  # noqa: E402
+from companion.link.wire import Codec  # noqa: E402
 from companion.node.setup import SET_UP_LOG_TEXT  # noqa: E402
-from sim_bridge.runs.fleet import terminate_all  # noqa: E402
+from sim_bridge.runs.procs import terminate_all  # noqa: E402
 from sim_bridge.sitl.ports import find_free_udp_range  # noqa: E402
 from sim_bridge.sitl.status import SitlStatus  # noqa: E402
 

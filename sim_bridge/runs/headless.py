@@ -40,12 +40,13 @@ from sim_bridge.runs.commands import ScheduledCommands
 from sim_bridge.scenario import ScenarioConfig, expected_end_s
 from sim_bridge.sitl.autopilots import UnknownAutopilotBehaviour, autopilot_named
 from sim_bridge.sitl.params_table import ParamTable
-from sim_bridge.world.autopilot_model import AutopilotModel, PositionController, hover_thrust_errors
+from sim_bridge.world.autopilot_model import AutopilotModel, hover_thrust_errors
 from sim_bridge.world.carrier import carrier_position_ned_m, release_times_s, sample_release_attitudes
 from sim_bridge.world.estimator import Estimator, bias_disturbance_ned_mps2, to_true_frame
 from sim_bridge.world.faults import RotorFaults, resolve_rotor_failures
 from sim_bridge.world.jit import agent_kernels, compiled, output_kernels
 from sim_bridge.world.physics import Physics, hover_rotor_speed_radps, hover_thrust_norm
+from sim_bridge.world.position_loop import PositionController
 from sim_bridge.world.transport import NeighbourTransport, make_transport
 
 TICK_OBSERVERS: list[Callable[[float, SwarmStates | None], None]] = []

@@ -10,10 +10,10 @@ import time
 from typing import Callable, Protocol
 
 from companion.link.enums import FailureType, FailureUnit, MavCmd, MavFtpErr, MavFtpOpcode, MavMissionType, MsgId
+from companion.link.framing import signature_of
 from companion.link.limits import INVALID_SETPOINTS, check_attitude, check_trajectory
 from companion.link.params import param_name
 from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target
-from companion.link.wire import signature_of
 from sim_bridge.sitl.autopilot import (
     ACCEPTED,
     DENIED,

@@ -55,8 +55,9 @@ import numpy as np
 
 from companion.commands import SLOTS_PER_MESSAGE
 from companion.link.endpoints import UdpLink
+from companion.link.framing import FrameError
 from companion.link.msgdef import swarmdrop as sd
-from companion.link.wire import Codec, FrameError
+from companion.link.wire import Codec
 from companion.swarm import PHASE_COUNT
 from sim_bridge.world.plan_radio import FRAME_SLOTS_US, PLAN_STREAM_SALT
 from sim_bridge.world.transport import AgeHistogram, LinkConfig, LinkStats, MeanMax, RadioModel

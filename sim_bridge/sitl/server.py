@@ -23,8 +23,8 @@ import numpy as np
 
 from companion.frames import geodetic_to_ned
 from companion.link.endpoints import MavEndpoint
+from companion.link.framing import signature_of
 from companion.link.signing import SigningCounters
-from companion.link.wire import signature_of
 from companion.mission import Mission
 from companion.swarm import FLAG_ASSEMBLED, PHASE_COUNT, swarm_due
 from sim_bridge.reports.record import MissionTracker, RunResult

@@ -19,11 +19,12 @@ from sim_bridge.sitl.autopilots import autopilot_named
 from sim_bridge.sitl.config import SitlConfig
 from sim_bridge.sitl.params_table import ParamTable
 from sim_bridge.sitl.telemetry import quantised_origin
-from sim_bridge.world.autopilot_model import PositionController, hover_thrust_errors, on_ground_and_slow
+from sim_bridge.world.autopilot_model import hover_thrust_errors, on_ground_and_slow
 from sim_bridge.world.carrier import carrier_position_ned_m, release_times_s, sample_release_attitudes
 from sim_bridge.world.estimator import Estimator, bias_disturbance_ned_mps2, to_true_frame
 from sim_bridge.world.faults import RotorFaults, resolve_rotor_failures
 from sim_bridge.world.physics import Physics, WindField, hover_thrust_norm
+from sim_bridge.world.position_loop import PositionController
 
 
 class FleetListener(Protocol):

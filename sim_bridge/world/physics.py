@@ -19,9 +19,9 @@ from companion.control import geometric, pid, so3
 from companion.control.geometric import N_SP, SP_ACC, SP_POS, SP_Q, max_thrust_n, pack_control_params, pack_setpoint
 from companion.params import GRAVITY_MPS2, InnerLoopConfig, VehicleParams
 from companion.state import FleetSetpoint, FleetState
-from sim_bridge.world.autopilot_model import G_STYLE, LOOP_OFF, N_G, N_M, PositionController, position_loop_accel
 from sim_bridge.world.dynamics import VP_G, allocate, motor_coeffs, pack_vehicle_params, rigid_body_step
 from sim_bridge.world.jit import compiled
+from sim_bridge.world.position_loop import G_STYLE, LOOP_OFF, N_G, N_M, PositionController, position_loop_accel
 
 load_mat, store_mat = compiled(so3.load_mat), compiled(so3.store_mat)
 geometric_core, pid_core = compiled(geometric.geometric_core), compiled(pid.pid_core)

@@ -143,9 +143,10 @@ def load_tlog(path: Path, mission: MissionInfo | None) -> Recording:
         ConfigError: unreadable, or no valid SWARMDROP_STATE in it.
     """
     from companion.link.enums import MsgId
+    from companion.link.framing import FrameError
     from companion.link.msgdef import swarmdrop as sd
     from companion.link.tlog import read_tlog
-    from companion.link.wire import Codec, FrameError
+    from companion.link.wire import Codec
     from companion.swarm import PHASE_COUNT
 
     codec = Codec(sd)

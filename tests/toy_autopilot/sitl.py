@@ -10,7 +10,7 @@ from companion.link.enums import MavSeverity
 from companion.params import InnerLoopConfig
 from sim_bridge.sitl.autopilots.base import AutopilotBehaviour
 from sim_bridge.sitl.params_table import ParamSpec, ParamTable, Role, real_param
-from sim_bridge.world.autopilot_model import PositionLoopGains
+from sim_bridge.world.position_loop import PositionLoopGains
 
 
 class ToyBehaviour(AutopilotBehaviour):

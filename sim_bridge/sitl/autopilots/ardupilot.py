@@ -19,7 +19,7 @@ from companion.link.setpoints import AttitudeSetpoint
 from companion.params import GRAVITY_MPS2, InnerLoopConfig
 from sim_bridge.sitl.autopilots.base import AutopilotBehaviour, Machine
 from sim_bridge.sitl.params_table import ParamSpec, ParamTable, Role, int_param, real_param
-from sim_bridge.world.autopilot_model import LOOP_ARDUPILOT, PositionLoopGains
+from sim_bridge.world.position_loop import LOOP_ARDUPILOT, PositionLoopGains
 
 NEXT_MODE = {GUIDED: Mode.OFFBOARD, LOITER: Mode.POSITION, BRAKE: Mode.HOLD, LAND: Mode.LAND, THROW: Mode.THROW}
 """THROW_NEXTMODE values the SITL flies, as the Mode they mean (others: stay in THROW)."""

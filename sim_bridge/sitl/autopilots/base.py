@@ -37,7 +37,7 @@ from companion.link.limits import SetpointLimits
 from companion.link.setpoints import AttitudeSetpoint
 from companion.params import InnerLoopConfig
 from sim_bridge.sitl.params_table import ParamSpec, ParamTable, Role, simulator_specs
-from sim_bridge.world.autopilot_model import PositionLoopGains
+from sim_bridge.world.position_loop import PositionLoopGains
 
 
 class Machine(Protocol):
@@ -153,7 +153,7 @@ class AutopilotBehaviour(ABC):
     @abstractmethod
     def position_loop(self, table: ParamTable, hover_thrust_true: float) -> PositionLoopGains:
         """The gains and limits of this autopilot's position and velocity loops, in SI units,
-        from its own parameters (sim_bridge.world.autopilot_model.PositionLoopGains).
+        from its own parameters (sim_bridge.world.position_loop.PositionLoopGains).
 
         Args:
             table: the vehicle's parameter table (its hover-thrust parameter may be off).

@@ -16,7 +16,8 @@ from companion.link.limits import SetpointLimits
 from companion.params import InnerLoopConfig
 from sim_bridge.sitl.autopilots.base import AutopilotBehaviour, Machine
 from sim_bridge.sitl.params_table import ParamSpec, ParamTable, Role, int_param, real_param
-from sim_bridge.world.autopilot_model import DISARM_LAND_S, LOOP_PX4, PositionLoopGains
+from sim_bridge.world.autopilot_model import DISARM_LAND_S
+from sim_bridge.world.position_loop import LOOP_PX4, PositionLoopGains
 
 
 class Px4Behaviour(AutopilotBehaviour):
