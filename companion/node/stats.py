@@ -12,7 +12,6 @@ turns it and the node's link counters into an AgentStats.
 """
 from __future__ import annotations
 
-import collections
 import dataclasses
 import json
 import math
@@ -31,22 +30,83 @@ if TYPE_CHECKING:
 
 LAT_BIN_US, LAT_BINS = 50, 1000
 """Latency histogram in the statistics: 50 µs bins up to 50 ms (a fleet pools them)."""
-LATENCY_SAMPLES = 100_000
-"""Ticks whose latency the percentiles cover (the most recent ones)."""
-STEP_SAMPLES = 20_000
-"""Agent.step calls whose wall time the percentiles cover (the most recent ones)."""
+FINE_BIN_US, FINE_BINS = 10, 5000
+"""What the agent counts durations in: 10 µs bins up to 50 ms, the last one also holding
+everything beyond (the file's histogram sums them five by five)."""
 SIGNED_LINKS = ("autopilot", "swarm")
 """The links whose signing counters the statistics carry, in file order."""
 
 T = TypeVar("T")
 
 
+def histogram_percentiles(counts, bin_us: float, percents) -> list[float]:
+    """Percentiles of durations counted in a histogram, ms: the upper edge of the bin that
+    holds each (conservative: at most one bin above the exact value). The agent's own figures
+    and the fleet's pooled ones (sim_bridge/runs/fleet_report.py) both come from here.
+
+    Args:
+        counts: (B,) counts per bin, bin b covering [b, b + 1) * bin_us µs. percents: in [0, 100].
+    Returns:
+        One value per percent, ms ([] if counts is empty or all zero).
+    """
+    cum = np.cumsum(np.asarray(counts, dtype=np.int64))
+    if not len(cum) or cum[-1] == 0:
+        return []
+    idx = np.searchsorted(cum, np.asarray(percents, dtype=float) / 100.0 * cum[-1])
+    return ((np.minimum(idx, len(cum) - 1) + 1) * (bin_us / 1000.0)).tolist()
+
+
+class DurationHistogram:
+    """Durations counted as they come, in FINE_BIN_US bins, and their maximum: O(1) to add
+    (one tick's cost is an index and an increment) and O(bins) to summarise, however long the
+    flight, so writing the statistics every few seconds costs the same after hours as after
+    seconds. Percentiles cover the whole flight."""
+
+    __slots__ = ("counts", "max_s", "n")
+
+    def __init__(self) -> None:
+        self.counts = [0] * FINE_BINS
+        self.max_s = 0.0
+        self.n = 0
+
+    def add(self, dt_s: float) -> None:
+        """Count one duration, s (negative counts as 0, beyond the last bin in the last)."""
+        b = int(dt_s * (1e6 / FINE_BIN_US))
+        if b >= FINE_BINS:
+            b = FINE_BINS - 1
+        elif b < 0:
+            b = 0
+        self.counts[b] += 1
+        if dt_s > self.max_s:
+            self.max_s = dt_s
+        self.n += 1
+
+    def percentiles_ms(self, percents) -> list[float]:
+        """histogram_percentiles of what was counted, ms ([] if nothing was)."""
+        return histogram_percentiles(self.counts, FINE_BIN_US, percents)
+
+    def coarse(self, bin_us: int, bins: int) -> tuple[int, ...]:
+        """The counts in bins of bin_us (a multiple of FINE_BIN_US), `bins` of them, the last
+        also holding everything beyond.
+
+        Raises:
+            ValueError: bin_us not a multiple of FINE_BIN_US, or the bins reach past the fine ones.
+        """
+        k = bin_us // FINE_BIN_US
+        if k < 1 or k * FINE_BIN_US != bin_us or k * bins > FINE_BINS:
+            raise ValueError(f"{bins} bins of {bin_us} us from {FINE_BINS} of {FINE_BIN_US} us")
+        c = np.asarray(self.counts, dtype=np.int64)
+        out = c[:k * bins].reshape(bins, k).sum(axis=1)
+        out[-1] += c[k * bins:].sum()
+        return tuple(out.tolist())
+
+
 class TickCounters:
-    """What the tick path counts, updated on every tick (attributes, no allocation but
-    the two sample deques' slots)."""
+    """What the tick path counts, updated on every tick (attributes and two histograms: no
+    allocation)."""
 
     __slots__ = ("ticks", "setpoints_sent", "unsendable", "deadline_misses", "intervals", "last_send_wall",
-                 "latency_s", "step_s")
+                 "latency", "step")
 
     def __init__(self) -> None:
         self.ticks = 0
@@ -60,10 +120,10 @@ class TickCounters:
         """Intervals between consecutive setpoints measured (a tick without one restarts the count)."""
         self.last_send_wall = math.nan
         """perf_counter() of the last setpoint sent, s; NaN after a tick that sent none."""
-        self.latency_s: collections.deque[float] = collections.deque(maxlen=LATENCY_SAMPLES)
-        """Telemetry received -> setpoint sent, s, per tick that sent one."""
-        self.step_s: collections.deque[float] = collections.deque(maxlen=STEP_SAMPLES)
-        """Wall time of each Agent.step, s."""
+        self.latency = DurationHistogram()
+        """Telemetry received -> setpoint sent, per tick that sent one."""
+        self.step = DurationHistogram()
+        """Wall time of each Agent.step."""
 
 
 # ----------------------------------------------------------------------------- tolerant readers
@@ -110,8 +170,8 @@ def _all_floats(data: Mapping[str, Any], keys: tuple[str, ...]) -> dict[str, flo
 # ----------------------------------------------------------------------------- the tree
 @dataclass(frozen=True)
 class TickLatency:
-    """Telemetry received -> setpoint sent on the ticks that sent one, ms (the last
-    LATENCY_SAMPLES of them). File: "latency_ms"."""
+    """Telemetry received -> setpoint sent on the ticks that sent one, ms, over the whole
+    flight (percentiles: histogram_percentiles of FINE_BIN_US bins; max exact). File: "latency_ms"."""
 
     p50: float
     p90: float
@@ -152,7 +212,8 @@ class LatencyHistogram:
 
 @dataclass(frozen=True)
 class StepTime:
-    """Wall time of Agent.step (the planner), ms (the last STEP_SAMPLES calls). File: "agent_step_ms"."""
+    """Wall time of Agent.step (the planner), ms, over the whole flight (histogram_percentiles
+    of FINE_BIN_US bins). File: "agent_step_ms"."""
 
     p50: float
     p99: float
@@ -390,18 +451,14 @@ def collect(node: AgentNode) -> AgentStats:
     """Snapshot everything a node counts (every STATS_PERIOD_S and at exit)."""
     c = node.tick.counters
     cfg, v, ap_ep, swarm = node.cfg, node.vehicle, node.ap_ep, node.swarm
-    lat_ms = np.array(c.latency_s) * 1e3 if c.latency_s else np.zeros(0)
     latency = hist = None
-    if len(lat_ms):
-        p50, p90, p99 = (float(np.percentile(lat_ms, p)) for p in (50, 90, 99))
-        latency = TickLatency(p50, p90, p99, float(lat_ms.max()))
-        hist = LatencyHistogram(LAT_BIN_US, tuple(np.bincount(
-            np.minimum((np.array(c.latency_s) * 1e6 / LAT_BIN_US).astype(int), LAT_BINS - 1),
-            minlength=LAT_BINS).tolist()))
+    if c.latency.n:
+        p50, p90, p99 = c.latency.percentiles_ms((50, 90, 99))
+        latency = TickLatency(p50, p90, p99, c.latency.max_s * 1e3)
+        hist = LatencyHistogram(LAT_BIN_US, c.latency.coarse(LAT_BIN_US, LAT_BINS))
     step = None
-    if c.step_s:
-        step_ms = np.array(c.step_s) * 1e3
-        step = StepTime(float(np.percentile(step_ms, 50)), float(np.percentile(step_ms, 99)))
+    if c.step.n:
+        step = StepTime(*c.step.percentiles_ms((50, 99)))
     return AgentStats(
         vehicle_id=cfg.vehicle_id, phase=node.tick.phase.name, ticks=c.ticks, setpoints_sent=c.setpoints_sent,
         unsendable_setpoints=c.unsendable, latency_ms=latency, latency_hist=hist, agent_step_ms=step,

@@ -206,7 +206,7 @@ class TickPath:
         c.ticks += 1
         if sent:
             c.setpoints_sent += 1
-            c.latency_s.append(now - t_recv)
+            c.latency.add(now - t_recv)
             if c.last_send_wall == c.last_send_wall:  # not NaN
                 c.intervals += 1
                 if now - c.last_send_wall > self.late_s:
@@ -244,7 +244,7 @@ class TickPath:
                        np.array([v.launch_ready]))
         t_step = time.perf_counter()
         out = self.agent.step(t, own, self.view)
-        self.counters.step_s.append(time.perf_counter() - t_step)
+        self.counters.step.add(time.perf_counter() - t_step)
         if publish:
             self.swarm.publish(out.published)
             self._relay(t)

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from companion.link.signing import SigningCounters
-from companion.node.stats import AgentStats
+from companion.node.stats import AgentStats, histogram_percentiles
 from sim_bridge.reports.results import RunMetrics
 from sim_bridge.sitl.status import SitlStatus
 from sim_bridge.world.transport import MeanMax
@@ -109,10 +109,8 @@ def pooled_percentiles(hists: list, percents) -> dict[str, float]:
     if not hists:
         return {}
     counts = np.sum([np.asarray(h["counts"]) for h in hists], axis=0)
-    cum = np.cumsum(counts)
-    bin_ms = hists[0]["bin_us"] / 1000.0
-    # upper edge of the bin that holds the percentile (conservative)
-    return {f"p{p:g}": float((np.searchsorted(cum, p / 100.0 * cum[-1]) + 1) * bin_ms) for p in percents}
+    values = histogram_percentiles(counts, hists[0]["bin_us"], percents)
+    return {f"p{p:g}": v for p, v in zip(percents, values)}
 
 
 def _stat(xs: list[float], fn) -> float | None:
