@@ -1,4 +1,4 @@
-"""companion.link.wire and the swarmdrop dialect, checked against pymavlink as the reference:
+"""companion.link.framing and companion.link.wire and the swarmdrop dialect, checked against pymavlink as the reference:
 CRC, byte-exact encode, field-exact decode (MAVLink 1 and 2, signed, truncated payloads),
 typed errors and a seeded fuzz, datagram/stream framing, and the generated dialect itself."""
 from __future__ import annotations
@@ -284,7 +284,7 @@ def test_signed_frames_decode_and_expose_the_signature(codec):
     assert msg.get_header().incompat_flags == 1 and (msg.x, msg.vz) == (1.0, 0.5)
     assert signature_of(msg) == (3, 123456789, frame[-6:])
     assert signature_of(codec.decode(codec.encode(msg, 5, 1, 0))) is None
-    assert not msg.get_signed()  # not verified yet
+    assert not msg.get_signed()  # the codec does not check signatures (companion.link.signing does)
 
 
 # ----------------------------------------------------------------------------- errors

@@ -1,4 +1,4 @@
-"""The autopilots' own position and velocity loops (sim_bridge.world.autopilot_model), run by
+"""The autopilots' own position and velocity loops (sim_bridge.world.position_loop), run by
 the fused physics stepper, and what an estimator's bias and a wrong hover-thrust parameter do
 to a vehicle they fly: closed forms against the simulated airframe (issue 18)."""
 from __future__ import annotations

@@ -59,3 +59,18 @@ def test_nothing_counted_has_no_percentiles():
         DurationHistogram().coarse(15, 10)  # not a multiple of the fine bin
     with pytest.raises(ValueError):
         DurationHistogram().coarse(50, 2000)  # past 50 ms
+
+
+def test_no_percentile_above_the_largest_and_a_stall_past_the_bins_is_reported_as_it_was():
+    h = DurationHistogram()
+    h.add(0.2053e-3)  # one sample: every percentile is it, not its bin's upper edge
+    assert h.percentiles_ms((50, 99)) == [pytest.approx(0.2053), pytest.approx(0.2053)]
+    h = DurationHistogram()
+    for _ in range(999):
+        h.add(0.1e-3)
+    h.add(1.5)  # a 1.5 s stall, past the last bin's lower edge (50 ms)
+    p50, p99, p_top = h.percentiles_ms((50, 99, 99.95))
+    assert p50 == pytest.approx(0.11) and p99 == pytest.approx(0.11)
+    assert p_top == pytest.approx(1500.0)  # the stall itself, not the 50 ms edge
+    with pytest.raises(ValueError):
+        h.coarse(50, 0)

@@ -1,5 +1,5 @@
-"""The companion's MAVLink link layer: framing and a lean codec (``wire``) and the
-project dialect (``msgdef``).
+"""The companion's MAVLink link layer: framing (``framing``), a lean codec (``wire``)
+and the project dialect (``msgdef``).
 
 Why a package of its own: the onboard computer talks MAVLink at a few hundred
 messages per second and must not pay for pymavlink's parser or import numpy to do

@@ -254,7 +254,8 @@ class Codec:
         MAVLink 1 payloads without extension fields are zero-padded, extra payload bytes
         (fields of a newer definition) are ignored. ``get_srcSystem()``, ``get_seq()``,
         ``get_header().incompat_flags``, ``get_msgbuf()`` (the frame), ``get_crc()`` work.
-        Signed frames: see ``signature_of``; ``get_signed()`` stays False (not verified).
+        Signed frames: see ``companion.link.framing.signature_of``; ``get_signed()`` stays False
+        (the codec does not check signatures: companion.link.signing does).
 
         Args:
             frame: exactly one frame (bytes or bytearray), e.g. from split_datagram.

@@ -39,21 +39,27 @@ SIGNED_LINKS = ("autopilot", "swarm")
 T = TypeVar("T")
 
 
-def histogram_percentiles(counts, bin_us: float, percents) -> list[float]:
+def histogram_percentiles(counts, bin_us: float, percents, max_ms: float | None = None) -> list[float]:
     """Percentiles of durations counted in a histogram, ms: the upper edge of the bin that
     holds each (conservative: at most one bin above the exact value). The agent's own figures
     and the fleet's pooled ones (sim_bridge/runs/fleet_report.py) both come from here.
 
     Args:
-        counts: (B,) counts per bin, bin b covering [b, b + 1) * bin_us µs. percents: in [0, 100].
+        counts: (B,) counts per bin, bin b covering [b, b + 1) * bin_us µs, the last one also
+            everything beyond. percents: in [0, 100].
+        max_ms: the exact largest duration, if known: no percentile exceeds it, and one in
+            the last bin (past its lower edge, unbounded) is it.
     Returns:
         One value per percent, ms ([] if counts is empty or all zero).
     """
     cum = np.cumsum(np.asarray(counts, dtype=np.int64))
     if not len(cum) or cum[-1] == 0:
         return []
-    idx = np.searchsorted(cum, np.asarray(percents, dtype=float) / 100.0 * cum[-1])
-    return ((np.minimum(idx, len(cum) - 1) + 1) * (bin_us / 1000.0)).tolist()
+    idx = np.minimum(np.searchsorted(cum, np.asarray(percents, dtype=float) / 100.0 * cum[-1]), len(cum) - 1)
+    out = (idx + 1) * (bin_us / 1000.0)
+    if max_ms is not None:
+        out = np.where(idx == len(cum) - 1, max_ms, np.minimum(out, max_ms))
+    return out.tolist()
 
 
 class DurationHistogram:
@@ -82,8 +88,9 @@ class DurationHistogram:
         self.n += 1
 
     def percentiles_ms(self, percents) -> list[float]:
-        """histogram_percentiles of what was counted, ms ([] if nothing was)."""
-        return histogram_percentiles(self.counts, FINE_BIN_US, percents)
+        """histogram_percentiles of what was counted, ms, none above the largest ([] if
+        nothing was)."""
+        return histogram_percentiles(self.counts, FINE_BIN_US, percents, self.max_s * 1e3)
 
     def coarse(self, bin_us: int, bins: int) -> tuple[int, ...]:
         """The counts in bins of bin_us (a multiple of FINE_BIN_US), `bins` of them, the last
@@ -93,7 +100,7 @@ class DurationHistogram:
             ValueError: bin_us not a multiple of FINE_BIN_US, or the bins reach past the fine ones.
         """
         k = bin_us // FINE_BIN_US
-        if k < 1 or k * FINE_BIN_US != bin_us or k * bins > FINE_BINS:
+        if k < 1 or bins < 1 or k * FINE_BIN_US != bin_us or k * bins > FINE_BINS:
             raise ValueError(f"{bins} bins of {bin_us} us from {FINE_BINS} of {FINE_BIN_US} us")
         c = np.asarray(self.counts, dtype=np.int64)
         out = c[:k * bins].reshape(bins, k).sum(axis=1)

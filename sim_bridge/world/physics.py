@@ -250,7 +250,7 @@ class Physics:
             acc_ext_ned_mps2: (N, 3) external acceleration on each vehicle beside gravity and
                 drag (an estimator's bias: sim_bridge.world.estimator.bias_disturbance_ned_mps2);
                 default none.
-            loop: the autopilots' position loops (N rows; sim_bridge.world.autopilot_model):
+            loop: the autopilots' position loops (N rows; sim_bridge.world.position_loop):
                 every physics step they turn each position-family setpoint into the
                 acceleration the inner controller flies (their memory advances in place);
                 default none: the inner controller flies the setpoint itself.

@@ -7,7 +7,7 @@ vehicle's `AutopilotBehaviour` wherever PX4 and ArduPilot differ:
 
 * its parameter table (names, units, defaults, and which parameter plays which `Role`);
 * its position and velocity loops' gains, from its own parameters (`position_loop`; the
-  loop itself is sim_bridge.world.autopilot_model's, run by the physics stepper);
+  loop itself is sim_bridge.world.position_loop's, run by the physics stepper);
 * offboard/GUIDED entry: whether a live setpoint stream is required, whether entering
   clears the last setpoint, whether setpoints outside it are flown;
 * what it does when the companion's setpoints stop (`offboard_lost`, by default as the
