@@ -291,3 +291,52 @@ def test_shared_gcs_endpoint_carries_all_vehicles():
         c.command(2, 400, 0)
         c.close()
         bg.stop()
+
+
+def test_stream_intervals_are_per_link_as_on_px4_and_ardupilot():
+    """A companion's 50 Hz request on its vehicle's endpoint leaves the shared GCS endpoint at
+    the default rate, and the GCS's own requests (off, another rate) leave the companion's
+    streams alone: PX4 keeps intervals per MAVLink instance, ArduPilot per channel."""
+    import dataclasses
+
+    from sim_bridge.sitl.testing import free_udp_base_port
+
+    def spacing_ms(client, name, sysid, count=11):
+        client.drain()
+        t = [client.wait(name, lambda m: m.get_srcSystem() == sysid, 3).time_boot_ms for _ in range(count)]
+        return (t[-1] - t[0]) / (count - 1)
+
+    ep = dataclasses.replace(local_endpoints(2), gcs_enabled=True, gcs_remote_port=free_udp_base_port(1))
+    bg = BackgroundSitl(sitl_config(2, endpoints=ep))
+    bg.start()
+    companion, gcs = MavClient(ep.vehicle_remote_port(0)), MavClient(ep.gcs_remote_port)
+    try:
+        assert companion.wait("HEARTBEAT", timeout_s=3) is not None and gcs.wait("HEARTBEAT", timeout_s=3) is not None
+        assert companion.command(1, 511, 32, 20000).result == mavlink.MAV_RESULT_ACCEPTED  # LPN at 50 Hz
+        assert spacing_ms(companion, "LOCAL_POSITION_NED", 1) < 35  # ~20 ms
+        assert spacing_ms(gcs, "LOCAL_POSITION_NED", 1) > 80  # still the default 100 ms
+        # each link reports its own interval (MESSAGE_INTERVAL after GET_MESSAGE_INTERVAL)
+        assert companion.command(1, 510, 32).result == mavlink.MAV_RESULT_ACCEPTED
+        assert companion.wait("MESSAGE_INTERVAL", lambda m: m.message_id == 32, 3).interval_us == 20000
+        assert gcs.command(1, 510, 32).result == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.wait("MESSAGE_INTERVAL", lambda m: m.message_id == 32, 3).interval_us == 100000
+        # the GCS turns ATTITUDE off for itself: the companion still gets it
+        assert gcs.command(1, 511, 30, -1).result == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.command(1, 510, 30).result == mavlink.MAV_RESULT_ACCEPTED
+        assert gcs.wait("MESSAGE_INTERVAL", lambda m: m.message_id == 30, 3).interval_us == -1
+        assert companion.wait("ATTITUDE", lambda m: m.get_srcSystem() == 1, 3) is not None
+        gcs.drain()
+        # over five of vehicle 1's positions (0.5 s of its 10 Hz stream) the GCS gets no ATTITUDE
+        # of vehicle 1 (it would get about five), while vehicle 2's ATTITUDE still comes
+        seen: list[str] = []
+        for _ in range(200):  # bounded
+            m = gcs.wait(["LOCAL_POSITION_NED", "ATTITUDE"], lambda m: m.get_srcSystem() in (1, 2), 3)
+            assert m is not None
+            seen.append(f"{m.get_type()}:{m.get_srcSystem()}")
+            if seen.count("LOCAL_POSITION_NED:1") >= 5:
+                break
+        assert seen.count("LOCAL_POSITION_NED:1") >= 5 and "ATTITUDE:1" not in seen and "ATTITUDE:2" in seen
+    finally:
+        companion.close()
+        gcs.close()
+        bg.stop()

@@ -73,8 +73,8 @@ class SitlContext(Protocol):
     @property
     def sim_s(self) -> float: ...
     def send(self, k: int, msg: Outgoing, endpoint, addr) -> None: ...
-    def set_message_interval(self, k: int, msgid: int, interval_s: float | None) -> None: ...
-    def message_interval_s(self, k: int, msgid: int) -> float: ...
+    def set_message_interval(self, k: int, msgid: int, interval_s: float | None, endpoint=None) -> None: ...
+    def message_interval_s(self, k: int, msgid: int, endpoint=None) -> float: ...
     def on_setpoint(self, k: int) -> None: ...
     def on_companion_tick(self, k: int, time_usec: int) -> None: ...
     def set_origin_geodetic(self, k: int, lat_e7: int, lon_e7: int, alt_mm: int) -> None: ...
@@ -186,9 +186,9 @@ class MessageRouter:
         elif command == CMD_INJECT_FAILURE:
             result = self._inject_failure(k, ap, p[0], p[1], p[2])
         elif command == CMD_SET_MESSAGE_INTERVAL:
-            result = self._set_interval(k, p[0], p[1])
+            result = self._set_interval(k, p[0], p[1], endpoint)
         elif command == CMD_GET_MESSAGE_INTERVAL:
-            result, followup = self._get_interval(k, p[0])
+            result, followup = self._get_interval(k, p[0], endpoint)
         elif command in (CMD_REQUEST_MESSAGE, CMD_REQUEST_AUTOPILOT_CAPABILITIES):
             msgid = MsgId.AUTOPILOT_VERSION if command == CMD_REQUEST_AUTOPILOT_CAPABILITIES else p[0]
             if not math.isfinite(msgid) or int(msgid) not in REQUESTABLE:
@@ -222,7 +222,8 @@ class MessageRouter:
         ap.events.append((SEV_CRITICAL, f"motor failure injected: {'all' if motor == 0 else motor}"))
         return ACCEPTED
 
-    def _set_interval(self, k, msgid_f, interval_us) -> int:
+    def _set_interval(self, k, msgid_f, interval_us, endpoint) -> int:
+        """SET_MESSAGE_INTERVAL for the link it came on (endpoint): intervals are per link."""
         if not (math.isfinite(msgid_f) and math.isfinite(interval_us)):
             return DENIED
         msgid = int(msgid_f)
@@ -236,13 +237,13 @@ class MessageRouter:
             value = None
         else:
             value = interval_us * 1e-6
-        self.ctx.set_message_interval(k, msgid, value)
+        self.ctx.set_message_interval(k, msgid, value, endpoint)
         return ACCEPTED
 
-    def _get_interval(self, k, msgid_f):
+    def _get_interval(self, k, msgid_f, endpoint):
         if not math.isfinite(msgid_f) or (int(msgid_f) not in STREAMS and int(msgid_f) != HEARTBEAT):
             return DENIED, None
-        iv = self.ctx.message_interval_s(k, int(msgid_f))
+        iv = self.ctx.message_interval_s(k, int(msgid_f), endpoint)
         us = -1 if not math.isfinite(iv) else int(round(iv * 1e6))
         return ACCEPTED, (MsgId.MESSAGE_INTERVAL, self.ctx.telemetry.build_fields[MsgId.MESSAGE_INTERVAL](
             message_id=int(msgid_f), interval_us=us))

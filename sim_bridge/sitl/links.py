@@ -86,12 +86,12 @@ class SitlLinks:
         """A reply of vehicle k (autopilot component) to addr on one endpoint."""
         endpoint.queue_fields(msg[0], msg[1], addr, sysid=k + 1, compid=MAV_COMP_ID_AUTOPILOT1)
 
-    def broadcast(self, k: int, msg: Outgoing) -> None:
-        """Telemetry of vehicle k to its own endpoint and the shared GCS endpoint."""
+    def broadcast(self, k: int, msg: Outgoing, vehicle: bool = True, gcs: bool = True) -> None:
+        """A message of vehicle k to its own endpoint (vehicle) and the shared GCS endpoint (gcs)."""
         msgid, values = msg
-        if self.endpoints:
+        if vehicle and self.endpoints:
             self.endpoints[k].queue_fields(msgid, values, sysid=k + 1, compid=MAV_COMP_ID_AUTOPILOT1)
-        if self.gcs is not None:
+        if gcs and self.gcs is not None:
             self.gcs.queue_fields(msgid, values, sysid=k + 1, compid=MAV_COMP_ID_AUTOPILOT1)
 
     def flush_all(self) -> None:

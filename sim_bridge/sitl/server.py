@@ -96,9 +96,17 @@ class SitlServer:
         self.telemetry = TelemetryBuilder(fl.state, fl.autopilots, cfg.home, fl.home_ned_m, self.links.codec,
                                           cfg.time.epoch_unix_s, estimator=fl.estimator, origin_e7=fl.origin_e7,
                                           flight_time_s=fl.flight_time_s)
-        self.streams = IntervalScheduler(n, STREAMS, [default_interval_s(cfg.streams, m) for m in STREAMS], 0.0)
-        self.heartbeats = IntervalScheduler(n, (HEARTBEAT,), [default_interval_s(cfg.streams, HEARTBEAT)],
-                                            wall_clock())
+        # Stream intervals are per link, as PX4 (per MAVLink instance) and ArduPilot (per
+        # channel) keep them: a companion's 50 Hz request on its vehicle's endpoint does not
+        # flood the shared GCS endpoint, and a GCS's request does not change the companion's.
+        stream_s = [default_interval_s(cfg.streams, m) for m in STREAMS]
+        hb_s = [default_interval_s(cfg.streams, HEARTBEAT)]
+        self.streams = IntervalScheduler(n, STREAMS, stream_s, 0.0)
+        """The vehicles' own endpoints' streams (simulation time)."""
+        self.heartbeats = IntervalScheduler(n, (HEARTBEAT,), hb_s, wall_clock())
+        self.gcs_streams = IntervalScheduler(n, STREAMS, stream_s, 0.0)
+        """The shared GCS endpoint's streams of each vehicle."""
+        self.gcs_heartbeats = IntervalScheduler(n, (HEARTBEAT,), hb_s, wall_clock())
         self.gate = LockstepGate(n, cfg.time, wall_clock)
         """Who holds the lockstep clock."""
         self.attached = self.gate.attached
@@ -177,15 +185,21 @@ class SitlServer:
         """Telemetry of vehicle k to its own endpoint and the shared GCS endpoint."""
         self.links.broadcast(k, msg)
 
-    def set_message_interval(self, k: int, msgid: int, interval_s: float | None) -> None:
+    def _scheduler(self, msgid: int, endpoint: MavEndpoint | None) -> IntervalScheduler:
+        """Whose interval of msgid a command on endpoint sets: the shared GCS endpoint's own,
+        or the vehicle endpoint's."""
+        on_gcs = endpoint is not None and endpoint is self.links.gcs
         if msgid == HEARTBEAT:
-            self.heartbeats.set_interval(k, msgid, interval_s, self.wall_clock())
-        else:
-            self.streams.set_interval(k, msgid, interval_s, self.sim_s)
+            return self.gcs_heartbeats if on_gcs else self.heartbeats
+        return self.gcs_streams if on_gcs else self.streams
 
-    def message_interval_s(self, k: int, msgid: int) -> float:
-        sched = self.heartbeats if msgid == HEARTBEAT else self.streams
-        return sched.interval(k, msgid)
+    def set_message_interval(self, k: int, msgid: int, interval_s: float | None,
+                             endpoint: MavEndpoint | None = None) -> None:
+        now = self.wall_clock() if msgid == HEARTBEAT else self.sim_s
+        self._scheduler(msgid, endpoint).set_interval(k, msgid, interval_s, now)
+
+    def message_interval_s(self, k: int, msgid: int, endpoint: MavEndpoint | None = None) -> float:
+        return self._scheduler(msgid, endpoint).interval(k, msgid)
 
     def on_setpoint(self, k: int) -> None:
         self.gate.sp_fresh[k] = True
@@ -259,20 +273,28 @@ class SitlServer:
                                    None if self.commands is None else self.commands.records)
 
     def emit_streams(self) -> None:
-        """Telemetry due now, to every vehicle's stations (a LOCAL_POSITION_NED is a control tick)."""
+        """Telemetry due now, each link's own (a LOCAL_POSITION_NED to a vehicle's endpoint is
+        a control tick). A message due on both links is built once and sent on both."""
         t0 = time.perf_counter()
-        ks, js = self.streams.due(self.sim_s)
-        if len(ks):
+        due = [list(zip(*(a.tolist() for a in self.streams.due(self.sim_s))))]
+        if self.links.gcs is not None:
+            due.append(list(zip(*(a.tolist() for a in self.gcs_streams.due(self.sim_s)))))
+        if any(due):
             self.telemetry.snapshot(self.sim_s)
             msgids = self.streams.msgids
             t_us = int(round(self.sim_s * 1e6))
-            geo = [k for k, j in zip(ks.tolist(), js.tolist()) if msgids[j] in (GLOBAL_POSITION_INT, GPS_RAW_INT)]
-            self.telemetry.prepare_geodetic(geo)
-            for k, j in zip(ks.tolist(), js.tolist()):
-                msg = self.telemetry.build(k, msgids[j], self.sim_s)
-                if msg is not None:
-                    self.broadcast(k, msg)
-                    if msgids[j] == LOCAL_POSITION_NED:
+            self.telemetry.prepare_geodetic(sorted({k for pairs in due for k, j in pairs
+                                                    if msgids[j] in (GLOBAL_POSITION_INT, GPS_RAW_INT)}))
+            built: dict[tuple[int, int], Outgoing | None] = {}
+            for link, pairs in enumerate(due):
+                for k, j in pairs:
+                    if (k, j) not in built:
+                        built[k, j] = self.telemetry.build(k, msgids[j], self.sim_s)
+                    msg = built[k, j]
+                    if msg is None:
+                        continue
+                    self.links.broadcast(k, msg, vehicle=link == 0, gcs=link == 1)
+                    if link == 0 and msgids[j] == LOCAL_POSITION_NED:
                         self.gate.control_us[k] = t_us
         self.fleet.busy_wall_s += time.perf_counter() - t0
 
@@ -413,10 +435,13 @@ class SitlServer:
             now = self.wall_clock()
             ks, _ = self.heartbeats.due(now)
             for k in ks.tolist():
-                self.broadcast(k, self.telemetry.heartbeat(k))
+                self.links.broadcast(k, self.telemetry.heartbeat(k), gcs=False)
+            gks = self.gcs_heartbeats.due(now)[0] if self.links.gcs is not None else ks[:0]
+            for k in gks.tolist():
+                self.links.broadcast(k, self.telemetry.heartbeat(k), vehicle=False)
             listed = self.router.pump_params(now - last)
             last = now
-            if len(ks):
+            if len(ks) or len(gks):
                 self.links.flush_all()
             else:
                 for ep in listed:
