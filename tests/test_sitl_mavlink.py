@@ -241,6 +241,10 @@ def test_bad_input_leaves_sitl_and_other_vehicles_unaffected(sitl):
         wrong_crc[-1] ^= 0xFF
         junk = [b"", b"\x00", b"\xfd", b"\xfd\xff\x00", bytes(range(256)), good[:7], good[:-3], bytes(wrong_crc),
                 b"\xfe\x05" + b"\x00" * 20, b"\xfd" * 300, os.urandom(1000), good]
+        # the client speaks first (first contact, as a GCS or companion does): the stranger's
+        # frames below, the valid one included, cannot take the victim's link from it (PX4)
+        c.mav.param_request_read_send(3, 1, b"COM_OF_LOSS_T", -1)
+        assert c.wait("PARAM_VALUE", lambda m: m.param_id == "COM_OF_LOSS_T", 3) is not None
         with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
             for blob in junk:
                 s.sendto(blob, ("127.0.0.1", port))
@@ -248,6 +252,8 @@ def test_bad_input_leaves_sitl_and_other_vehicles_unaffected(sitl):
         c.mav.param_request_read_send(3, 1, b"COM_OF_LOSS_T", -1)
         assert c.wait("PARAM_VALUE", lambda m: m.param_id == "COM_OF_LOSS_T", 3) is not None
         assert c.wait("HEARTBEAT", lambda m: m.get_srcSystem() == 3 and not m.base_mode & 128, 3)
+        c.drain()  # telemetry still comes to the client, not to the stranger
+        assert c.wait("LOCAL_POSITION_NED", lambda m: m.get_srcSystem() == 3, 3) is not None
         assert ep.bad_frames + ep.link.bytes_skipped > bad_before
         # the vehicle the stray arm named was not armed through another vehicle's link
         hb = c_other.wait("HEARTBEAT", lambda m: m.get_srcSystem() == 4, 3)

@@ -16,7 +16,8 @@ URLs (companion.link.urls has every accepted form, from MAVSDK, pymavlink and MA
 
 Who a listening UDP link answers (its reply address; docs/signing.md):
     * signing off: the sender of the last frame that decoded (nothing can be verified;
-      as pymavlink and MAVProxy; unchanged from before signing existed).
+      as pymavlink and MAVProxy), or with first_contact_only (the SITL's autopilots, as
+      PX4) the first sender for good.
     * signing on (optional or require): only a TRUSTED frame moves it: signed, verified,
       new to the vehicle's replay table, and for a vehicle the link serves
       (companion.link.signing). An unsigned frame that is let through (RADIO_STATUS,
@@ -80,6 +81,9 @@ class Link:
         """An accepted but unverified frame came from addr: a datagram link nobody has
         claimed yet may answer there; a claimed one stays where it is."""
 
+    first_contact_only = False
+    """With signing off, answer the first sender for good (UdpLink's option), not the last."""
+
     def close(self) -> None:
         raise NotImplementedError
 
@@ -92,12 +96,15 @@ class UdpLink(Link):
         remote: where to send until someone talks to us (None: nowhere yet).
         learn_remote: answer where trusted frames come from (udpin; the module docstring
             says which frames are trusted).
+        first_contact_only: with signing off, answer the first sender for good instead of the
+            last one (PX4: its UDP client address is fixed at first contact), so that a
+            stranger's frames cannot take the link from whoever spoke first.
     Raises:
         OSError: the port cannot be bound (the message names host:port).
     """
 
     def __init__(self, bind: tuple[str, int] = ("127.0.0.1", 0), remote: tuple[str, int] | None = None,
-                 learn_remote: bool = True):
+                 learn_remote: bool = True, first_contact_only: bool = False):
         super().__init__()
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
@@ -114,6 +121,7 @@ class UdpLink(Link):
         self.sock.setblocking(False)
         self.remote = remote
         self.learn_remote = learn_remote
+        self.first_contact_only = first_contact_only
         self.claimed = False
         """Someone has talked to us (first contact): only trusted frames move remote now."""
 
@@ -334,9 +342,12 @@ class MavEndpoint:
                 continue
             if tlog is not None:
                 tlog.write(frame)
-            if sg is None:  # nothing to verify: follow the last sender
+            if sg is None:  # nothing to verify: follow the last sender, or keep the first
                 if addr != last_addr:
-                    link.note_peer(addr)
+                    if link.first_contact_only:
+                        link.note_first_contact(addr)
+                    else:
+                        link.note_peer(addr)
                     last_addr = addr
             elif verdict == TRUSTED:
                 link.note_peer(addr)

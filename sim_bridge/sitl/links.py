@@ -63,7 +63,11 @@ class SitlLinks:
             self.tlog = Tlog(self.cfg.tlog_path, clock=tlog_clock)
         for k in range(self.n):
             local = ec.local_base_port + k if ec.local_base_port else 0
-            link = UdpLink(bind=(ec.bind_host, local), remote=(ec.remote_host, ec.vehicle_remote_port(k)))
+            # As PX4 (mavlink_receiver: the UDP client address is set at first contact), an
+            # autopilot keeps answering whoever spoke to it first: a stranger's unsigned frames
+            # cannot take its link from the companion (with signing on, trusted frames decide).
+            link = UdpLink(bind=(ec.bind_host, local), remote=(ec.remote_host, ec.vehicle_remote_port(k)),
+                           first_contact_only=True)
             ep = MavEndpoint(link, self.codec, k + 1, MAV_COMP_ID_AUTOPILOT1, self.tlog,
                              signing=self.signing.endpoint(k))
             self.endpoints.append(ep)
