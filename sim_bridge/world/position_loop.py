@@ -18,6 +18,10 @@ import numpy as np
 from numba import njit
 
 from companion.control.geometric import SP_ACC, SP_POS, SP_VEL
+from companion.link.limits import SetpointLimits
+
+_PX4_LIMITS = SetpointLimits()
+"""PX4's default speed, tilt and thrust limits (MPC_*): one home, companion.link.limits."""
 
 LOOP_OFF, LOOP_PX4, LOOP_ARDUPILOT = 0, 1, 2
 """Gain-row STYLE: no loop (the setpoint goes to the inner controller as it is), PX4, ArduPilot."""
@@ -62,12 +66,12 @@ class PositionLoopGains:
     vel_p_z_per_s: float = 4.0
     vel_i_z_per_s2: float = 2.0
     vel_d_z: float = 0.0
-    vel_max_xy_mps: float = 12.0
-    vel_max_up_mps: float = 3.0
-    vel_max_dn_mps: float = 1.5
-    tilt_max_rad: float = math.radians(45.0)
-    thr_min: float = 0.12
-    thr_max: float = 1.0
+    vel_max_xy_mps: float = _PX4_LIMITS.xy_vel_max_mps
+    vel_max_up_mps: float = _PX4_LIMITS.z_vel_max_up_mps
+    vel_max_dn_mps: float = _PX4_LIMITS.z_vel_max_dn_mps
+    tilt_max_rad: float = _PX4_LIMITS.tilt_max_rad
+    thr_min: float = _PX4_LIMITS.thr_min
+    thr_max: float = _PX4_LIMITS.thr_max
     thr_xy_margin: float = 0.3
     hover_param: float = 0.5
     hover_true: float = 0.5
