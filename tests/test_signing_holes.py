@@ -127,8 +127,8 @@ class AgentLink:
     def __init__(self):
         self.codec = Codec(mavlink, swarmdrop)
         self.signing = Signing("require", KEY, link_id=0, crc_extra=self.codec.crc_extra)
-        self.ep = MavEndpoint(UdpLink(bind=("127.0.0.1", 0), remote=None, learn_remote=True), self.codec, 1, 191,
-                              signing=self.signing)
+        self.ep = MavEndpoint(UdpLink(bind=("127.0.0.1", 0), remote=None, learn_remote=True, peer_ids=(1, 1)),
+                              self.codec, 1, 191, signing=self.signing)
         self.port = self.ep.link.local_port
 
     def fileno(self) -> int:

@@ -18,6 +18,12 @@ Who a listening UDP link answers (its reply address; docs/signing.md):
     * signing off: the sender of the last frame that decoded (nothing can be verified;
       as pymavlink and MAVProxy), or with first_contact_only (the SITL's autopilots, as
       PX4) the first sender for good.
+    * peer_ids (an agent's own autopilot link): only frames from that (sysid, compid)
+      claim or move it; with signing off it keeps the first such sender, hands over to
+      another only after reclaim_after_s without a frame from the one it has, and drops
+      frames claiming those ids from any other address meanwhile (counted in
+      stranger_drops: a spoofed autopilot on the companion's port can neither take its
+      setpoints nor feed it telemetry while the real one talks).
     * signing on (optional or require): only a TRUSTED frame moves it: signed, verified,
       new to the vehicle's replay table, and for a vehicle the link serves
       (companion.link.signing). An unsigned frame that is let through (RADIO_STATUS,
@@ -32,11 +38,21 @@ from __future__ import annotations
 
 import collections
 import errno
+import math
 import os
 import socket
+import time
 from typing import Any, Callable, Sequence
 
-from companion.link.framing import MAGIC_V2, EncodeError, FrameError, FrameSplitter, UnknownMessage, split_datagram
+from companion.link.framing import (
+    MAGIC_V2,
+    EncodeError,
+    FrameError,
+    FrameSplitter,
+    UnknownMessage,
+    frame_ids,
+    split_datagram,
+)
 from companion.link.signing import TRUSTED, UNSIGNED, Signing
 from companion.link.tlog import Tlog
 from companion.link.urls import EndpointError, LinkAddress, parse_url  # noqa: F401  (re-exported)
@@ -57,11 +73,13 @@ class Link:
         bytes_skipped: bytes that were not part of a whole frame (garbage, truncation).
         send_errors: sends the OS refused (buffer full, peer gone); the frame is dropped.
         no_peer_drops: frames dropped because nobody has talked to a listening link yet.
+        stranger_drops: frames claiming peer_ids from another address than the peer's
+            (UdpLink with peer_ids, signing off).
     """
 
     def __init__(self) -> None:
         self.bytes_in = self.bytes_out = self.frames_in = 0
-        self.bytes_skipped = self.send_errors = self.no_peer_drops = 0
+        self.bytes_skipped = self.send_errors = self.no_peer_drops = self.stranger_drops = 0
 
     def fileno(self) -> int:
         raise NotImplementedError
@@ -81,8 +99,23 @@ class Link:
         """An accepted but unverified frame came from addr: a datagram link nobody has
         claimed yet may answer there; a claimed one stays where it is."""
 
+    def note_unverified(self, addr: Any) -> None:
+        """A frame came from addr with signing off (nothing can be verified): follow the last
+        sender, or with first_contact_only keep the first (UdpLink with peer_ids: its rule)."""
+        if self.first_contact_only:
+            self.note_first_contact(addr)
+        else:
+            self.note_peer(addr)
+
     first_contact_only = False
     """With signing off, answer the first sender for good (UdpLink's option), not the last."""
+    peer_ids: tuple[int, int] | None = None
+    """Only frames from this (sysid, compid) claim or move the reply address (UdpLink's option)."""
+
+    def stranger(self, addr: Any) -> bool:
+        """With signing off and peer_ids: a frame claiming peer_ids from addr comes from
+        someone else than the peer this link answers (and the peer is still talking)."""
+        return False
 
     def close(self) -> None:
         raise NotImplementedError
@@ -99,12 +132,21 @@ class UdpLink(Link):
         first_contact_only: with signing off, answer the first sender for good instead of the
             last one (PX4: its UDP client address is fixed at first contact), so that a
             stranger's frames cannot take the link from whoever spoke first.
+        peer_ids: (sysid, compid) of the one system this link serves (an agent's autopilot):
+            frames from other ids never claim or move the reply address. With signing off
+            the link then behaves as first_contact_only, except that another address may
+            take it over once the one it answers has sent nothing for reclaim_after_s (an
+            autopilot or router restarted on a new port); until then frames claiming
+            peer_ids from elsewhere are dropped (stranger_drops).
+        reclaim_after_s: see peer_ids, s. clock: monotonic seconds (injected for tests).
     Raises:
         OSError: the port cannot be bound (the message names host:port).
     """
 
     def __init__(self, bind: tuple[str, int] = ("127.0.0.1", 0), remote: tuple[str, int] | None = None,
-                 learn_remote: bool = True, first_contact_only: bool = False):
+                 learn_remote: bool = True, first_contact_only: bool = False,
+                 peer_ids: tuple[int, int] | None = None, reclaim_after_s: float = 2.0,
+                 clock: Callable[[], float] = time.monotonic):
         super().__init__()
         self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         try:
@@ -121,7 +163,12 @@ class UdpLink(Link):
         self.sock.setblocking(False)
         self.remote = remote
         self.learn_remote = learn_remote
-        self.first_contact_only = first_contact_only
+        self.first_contact_only = first_contact_only or peer_ids is not None
+        self.peer_ids = peer_ids
+        self.reclaim_after_s = reclaim_after_s
+        self._clock = clock
+        self._remote_heard_s = -math.inf
+        """clock() when the peer (remote) last sent a frame that counted (peer_ids links)."""
         self.claimed = False
         """Someone has talked to us (first contact): only trusted frames move remote now."""
 
@@ -155,11 +202,30 @@ class UdpLink(Link):
         if self.learn_remote and addr is not None:
             self.remote = addr
             self.claimed = True
+            self._remote_heard_s = self._clock()
 
     def note_first_contact(self, addr: Any) -> None:
         if self.learn_remote and addr is not None and not self.claimed:
             self.remote = addr
             self.claimed = True
+            self._remote_heard_s = self._clock()
+
+    def note_unverified(self, addr: Any) -> None:
+        if self.peer_ids is None:
+            super().note_unverified(addr)
+            return
+        if not self.learn_remote or addr is None:
+            return
+        now = self._clock()
+        if self.claimed and addr != self.remote and now - self._remote_heard_s < self.reclaim_after_s:
+            return
+        self.remote = addr
+        self.claimed = True
+        self._remote_heard_s = now
+
+    def stranger(self, addr: Any) -> bool:
+        return (self.peer_ids is not None and self.claimed and addr != self.remote
+                and self._clock() - self._remote_heard_s < self.reclaim_after_s)
 
     def send(self, frame: bytes, addr: Any = None) -> bool:
         dest = addr or self.remote
@@ -247,11 +313,12 @@ def _open_serial(device: str, baud: int) -> int:
 
 
 def open_link(url: str | LinkAddress, crc_extra: Callable[[int], int | None] | None = None,
-              connect_timeout_s: float = 5.0) -> Link:
+              connect_timeout_s: float = 5.0, peer_ids: tuple[int, int] | None = None) -> Link:
     """Open a link from its URL (companion.link.urls).
 
     Args:
         connect_timeout_s: how long a TCP connect may take (a server that answers nothing).
+        peer_ids: udpin only: the (sysid, compid) the link serves (UdpLink's peer_ids rule).
     Raises:
         EndpointError: bad URL. OSError: cannot bind, connect or open the device; the
             message names the URL (a serial port: the device and the baud rate apart), and
@@ -273,7 +340,7 @@ def open_link(url: str | LinkAddress, crc_extra: Callable[[int], int | None] | N
     try:
         if a.scheme == "udpin":
             remote = (a.remote_host, a.remote_port) if a.remote_port else None
-            return UdpLink(bind=(a.host, a.port), remote=remote, learn_remote=True)
+            return UdpLink(bind=(a.host, a.port), remote=remote, learn_remote=True, peer_ids=peer_ids)
         if a.scheme == "udpout":
             return UdpLink(bind=("0.0.0.0" if a.host not in ("127.0.0.1", "localhost") else "127.0.0.1", 0),
                            remote=(a.host, a.port), learn_remote=False)
@@ -326,12 +393,17 @@ class MavEndpoint:
         kept one goes to the tlog. A kept frame moves the link's reply address only as the
         module docstring says. Never raises on bad input."""
         n, tlog, sg, link, last_addr = 0, self.tlog, self.signing, self.link, None
+        peer_ids = link.peer_ids
         verdict = TRUSTED
         for frame, addr in link.recv():
+            ids_match = peer_ids is None or frame_ids(frame) == peer_ids
             if sg is not None:
                 verdict = sg.verdict(frame)
                 if not verdict:
                     continue  # unsigned / forged / replayed: counted in sg.counters
+            elif peer_ids is not None and ids_match and link.stranger(addr):
+                link.stranger_drops += 1  # someone else claims to be our autopilot: nothing to verify
+                continue
             try:
                 take(frame, addr)
             except UnknownMessage:
@@ -342,12 +414,11 @@ class MavEndpoint:
                 continue
             if tlog is not None:
                 tlog.write(frame)
-            if sg is None:  # nothing to verify: follow the last sender, or keep the first
+            if not ids_match:
+                pass  # another system on the port (a ground station): it never moves the reply address
+            elif sg is None:  # nothing to verify: Link.note_unverified's rule
                 if addr != last_addr:
-                    if link.first_contact_only:
-                        link.note_first_contact(addr)
-                    else:
-                        link.note_peer(addr)
+                    link.note_unverified(addr)
                     last_addr = addr
             elif verdict == TRUSTED:
                 link.note_peer(addr)

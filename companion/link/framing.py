@@ -121,6 +121,14 @@ class EncodeError(ValueError):
 
 
 # ----------------------------------------------------------------------------- framing
+def frame_ids(frame: bytes) -> tuple[int, int] | None:
+    """(sysid, compid) of a whole MAVLink 1 or 2 frame (from split_datagram or FrameSplitter);
+    None if it is too short to hold them."""
+    if frame[0] == MAGIC_V2:
+        return (frame[5], frame[6]) if len(frame) > 6 else None
+    return (frame[3], frame[4]) if len(frame) > 4 else None
+
+
 def split_datagram(data: bytes) -> tuple[list[bytes], int]:
     """Complete MAVLink 1/2 frames in one datagram, and the number of bytes skipped.
 

@@ -112,7 +112,8 @@ def open_autopilot(cfg: NodeConfig, crc_extra: Callable[[int], int | None]) -> L
     tries = 0
     while True:
         try:
-            link = open_link(url, crc_extra, connect_timeout_s=max(0.05, min(5.0, deadline - time.monotonic())))
+            link = open_link(url, crc_extra, connect_timeout_s=max(0.05, min(5.0, deadline - time.monotonic())),
+                             peer_ids=(cfg.autopilot_sysid, MavComponent.MAV_COMP_ID_AUTOPILOT1))
         except OSError as err:
             if parse_url(url).scheme != "tcp" or err.errno not in TCP_WAIT_ERRNOS:
                 raise ConfigError(f"autopilot link {url}: cannot open it: {err.strerror or err}") from None

@@ -250,6 +250,9 @@ class AutopilotLinkStats:
     """Messages of ours with values out of range or not finite (ignored)."""
     bytes_in: int = 0
     bytes_out: int = 0
+    stranger_drops: int = 0
+    """Frames claiming our autopilot's ids from another address while it talks (udpin,
+    signing off: companion.link.endpoints, peer_ids): dropped."""
 
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -475,7 +478,7 @@ def collect(node: AgentNode) -> AgentStats:
         autopilot=AutopilotLinkStats(
             dialect=v.dialect.name if v.dialect else None, bad_frames=ap_ep.bad_frames,
             unknown_messages=ap_ep.unknown, foreign=v.foreign, dropped_nonfinite=v.dropped_nonfinite,
-            bytes_in=ap_ep.link.bytes_in, bytes_out=ap_ep.link.bytes_out),
+            bytes_in=ap_ep.link.bytes_in, bytes_out=ap_ep.link.bytes_out, stranger_drops=ap_ep.link.stranger_drops),
         swarm=swarm.counters(),
         identity=IdentityStats(
             vehicle_id=cfg.vehicle_id, sysid=cfg.assigned_sysid, autopilot_sysid=cfg.autopilot_sysid,
