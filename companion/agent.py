@@ -493,7 +493,7 @@ class Agent:
         sp = FleetSetpoint.empty(n)
         slot = np.full((n, 3), np.nan)
 
-        rows = np.flatnonzero(IN_FORMATION[phase] & valid & ~self.handed_over)
+        rows = (IN_FORMATION[phase] & valid & ~self.handed_over).nonzero()[0]
         self.slot_hold.clear_drive()
         if len(rows):
             groups = self._groups if len(rows) == n else book.references(t_s, self.t_go_s, rows)

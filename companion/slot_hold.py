@@ -90,15 +90,15 @@ class SlotIntegral:
         drive = np.zeros((len(rows), 3))
         if dt_s > 0:  # (False for NaN: the first step has nothing to integrate)
             r = resid + u2 / cfg.consensus.k2_pos_per_s2
-            r2 = np.einsum("ij,ij->i", r, r)
-            e, ev = p - h_pos, v - h_vel
+            # The five squared norms in one call (r, e = p - h, ev = v - h', u1, h'): this runs on
+            # every plan step of a small companion, where each numpy call costs more than its maths.
+            sq = np.array((r, p - h_pos, v - h_vel, u1, h_vel))
+            r2, e2, ev2, u12, hv2 = np.einsum("kij,kij->ki", sq, sq)
             # Stuck, not closing: the vehicle moves slower than eq. 27's slowest pole would move
             # it to cover r (a bias holds it still; a transient's tail decays at >= 0.54/s).
-            stuck = np.sqrt(np.einsum("ij,ij->i", ev, ev)) \
-                < si.stuck_rate_per_s * np.sqrt(np.minimum(r2, np.einsum("ij,ij->i", e, e))) + si.stuck_speed_mps
-            grow = stuck & (r2 < si.zone_m ** 2) \
-                & (np.einsum("ij,ij->i", u1, u1) < cfg.consensus_accel_max_mps2 ** 2) \
-                & (np.einsum("ij,ij->i", h_vel, h_vel) < si.slot_speed_max_mps ** 2)
+            stuck = np.sqrt(ev2) < si.stuck_rate_per_s * np.sqrt(np.minimum(r2, e2)) + si.stuck_speed_mps
+            grow = stuck & (r2 < si.zone_m ** 2) & (u12 < cfg.consensus_accel_max_mps2 ** 2) \
+                & (hv2 < si.slot_speed_max_mps ** 2)
             if grow.any():  # (every test above is False where a value is NaN)
                 z[grow] += r[grow] * min(dt_s, si.dt_max_s)
                 zn = np.sqrt(np.einsum("ij,ij->i", z, z))

@@ -171,13 +171,13 @@ class PlanBook:
         """Pending plans whose effective time has come (t_s >= effective_s) take force, entered
         from the track each row flew, with the transit start it holds (t_go_rows (R,), NaN:
         none). Returns the rows whose plan changed."""
-        pend = np.flatnonzero(self.pending_seq > 0)
+        pend = (self.pending_seq > 0).nonzero()[0]
         if not len(pend):
             return pend
         due = pend[[self._plans[int(s)].effective_s <= t_s for s in self.pending_seq[pend].tolist()]]
         if not len(due):
             return due
-        t_go = np.broadcast_to(np.asarray(t_go_rows, dtype=float), (self.n_rows,))
+        t_go = self._per_row(t_go_rows)
         for r in due.tolist():
             seq = int(self.pending_seq[r])
             key = (int(self.track_of[r]), seq, _key(float(t_go[r])))
@@ -206,7 +206,7 @@ class PlanBook:
             rows: the book rows wanted (indices; default all), e.g. those in a formation phase.
         """
         rows = np.arange(self.n_rows) if rows is None else self._rows(rows)
-        t_go = np.broadcast_to(np.asarray(t_go_rows, dtype=float), (self.n_rows,))[rows]
+        t_go = self._per_row(t_go_rows)[rows]
         tracks = self.track_of[rows]
         out = []
         tl = tracks.tolist()
@@ -233,6 +233,12 @@ class PlanBook:
             track.at(t_s, self.mission, t_go_s, out=(h_pos[g], h_vel[g], h_acc[g]))
             ends[g] = track.centre_end_s(self.mission, t_go_s)
         return RefGroup(rows, track, np.asarray(groups, dtype=float), h_pos, h_vel, h_acc, h_sel, ends)
+
+    def _per_row(self, t_go_rows) -> np.ndarray:
+        """t_go_rows as (n_rows,) floats: a scalar (or one value) broadcast, an array as it is."""
+        t_go = np.asarray(t_go_rows, dtype=float)
+        # (np.broadcast_to only when needed: it is a Python-level call worth 10 us a plan step)
+        return t_go if t_go.shape == (self.n_rows,) else np.broadcast_to(t_go, (self.n_rows,))
 
     def _rows(self, rows) -> np.ndarray:
         r = np.asarray(rows)
