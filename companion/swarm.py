@@ -210,7 +210,7 @@ class SwarmView:
                     flags: int, t_go_s: float) -> bool:
         """One state for one receiver (the onboard path: no arrays built). Same rules
         as receive. Returns True if it was applied."""
-        if not 0 <= vehicle_id < self.n_vehicles:
+        if not 0 <= vehicle_id < self.stamp_s.shape[1]:
             return False
         stored = _store_newest(self, (row, vehicle_id), stamp_s, pos_ned_m, vel_ned_mps, phase, flags)
         if stored:

@@ -107,6 +107,8 @@ class Link:
         else:
             self.note_peer(addr)
 
+    learn_remote = False
+    """Frames may move where the link sends (a listening UdpLink): else no note_* call matters."""
     first_contact_only = False
     """With signing off, answer the first sender for good (UdpLink's option), not the last."""
     peer_ids: tuple[int, int] | None = None
@@ -393,7 +395,7 @@ class MavEndpoint:
         kept one goes to the tlog. A kept frame moves the link's reply address only as the
         module docstring says. Never raises on bad input."""
         n, tlog, sg, link, last_addr = 0, self.tlog, self.signing, self.link, None
-        peer_ids = link.peer_ids
+        peer_ids, learn = link.peer_ids, link.learn_remote
         verdict = TRUSTED
         for frame, addr in link.recv():
             ids_match = peer_ids is None or frame_ids(frame) == peer_ids
@@ -414,8 +416,8 @@ class MavEndpoint:
                 continue
             if tlog is not None:
                 tlog.write(frame)
-            if not ids_match:
-                pass  # another system on the port (a ground station): it never moves the reply address
+            if not learn or not ids_match:
+                pass  # a link that never moves, or another system on the port (a ground station)
             elif sg is None:  # nothing to verify: Link.note_unverified's rule
                 if addr != last_addr:
                     link.note_unverified(addr)
