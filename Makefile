@@ -11,7 +11,7 @@ $(BIN)/python:
 
 $(STAMP): pyproject.toml | $(BIN)/python
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test,console]"
+	$(BIN)/python -m pip install --quiet -e ".[sim,console,sweep,test]"
 	touch $(STAMP)
 
 demo: $(STAMP)

@@ -13,6 +13,28 @@ import sys
 from pathlib import Path
 
 EXIT_INTERRUPTED = 130
+EXTRAS: dict[str, tuple[str, ...]] = {
+    "sim": ("scipy", "numba", "matplotlib", "tqdm", "pymavlink"),
+    "console": ("aiohttp", "scipy"),
+}
+"""The packages of each pyproject extra a subcommand needs (`pip install swarmdrop` alone is the
+onboard agent's install: docs/dependencies.md)."""
+EXTRA_OF = {"simulate": "sim", "run": "sim", "sweep": "sim", "sitl": "sim", "console": "console"}
+
+
+def missing_packages(extra: str) -> list[str]:
+    """The packages of `extra` (EXTRAS) that cannot be imported here."""
+    import importlib.util
+
+    out = []
+    for name in EXTRAS[extra]:
+        try:
+            found = importlib.util.find_spec(name) is not None
+        except (ImportError, ValueError):
+            found = False
+        if not found:
+            out.append(name)
+    return out
 
 
 def _warn(message: str) -> None:
@@ -291,6 +313,14 @@ def main(argv: list[str] | None = None) -> int:
 
             return agent_main(argv[1:])
         args = build_parser().parse_args(_options_taking_a_leading_dash(argv))
+        extra = EXTRA_OF.get(argv[0]) if argv else None
+        missing = missing_packages(extra) if extra is not None else []
+        if missing:
+            print(f"swarmdrop {argv[0]}: needs the '{extra}' extra, not installed here (missing: "
+                  f"{', '.join(missing)}); install it with: pip install 'swarmdrop[{extra}]'"
+                  + (" (and 'swarmdrop[sim,sweep]' for a Dask sweep)" if argv[0] == "sweep" else "")
+                  + ". `swarmdrop agent` needs none of it.", file=sys.stderr)
+            return 2
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
         print("\nswarmdrop: interrupted", file=sys.stderr)

@@ -16,6 +16,7 @@ import pytest
 import yaml
 
 os.environ.setdefault("MAVLINK20", "1")
+from lean_agent import lean_agent_cmd  # noqa: E402
 from pymavlink import mavutil  # noqa: E402
 
 from companion.agent import Phase  # noqa: E402
@@ -36,7 +37,8 @@ ONBOARD_BANNED = ("numba", "scipy", "matplotlib", "tqdm", "sim_bridge")
 
 
 def agent_cmd(*args: str) -> list[str]:
-    return [sys.executable, "-m", "swarmdrop.cli", "agent", *args]
+    """The agent as the onboard install runs it: none of the extras' packages importable."""
+    return lean_agent_cmd(*args)
 
 
 def run_agent(*args: str, timeout_s: float = 30.0) -> tuple[subprocess.CompletedProcess, float]:

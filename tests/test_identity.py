@@ -17,7 +17,6 @@ import select
 import signal
 import socket
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -25,6 +24,7 @@ import numpy as np
 import pytest
 
 os.environ.setdefault("MAVLINK20", "1")
+from lean_agent import lean_agent_cmd  # noqa: E402
 from pymavlink import mavutil  # noqa: E402
 
 from companion.agent import Agent, OwnState, Phase  # noqa: E402
@@ -46,7 +46,8 @@ Q_LEVEL = [1.0, 0.0, 0.0, 0.0]
 
 
 def agent_cmd(*args: str) -> list[str]:
-    return [sys.executable, "-m", "swarmdrop.cli", "agent", *args]
+    """The agent as the onboard install runs it: none of the extras' packages importable."""
+    return lean_agent_cmd(*args)
 
 
 def _state(t_us: int, vehicle_id: int, pos, vel=(0.0, 0.0, 0.0), phase=int(Phase.ASSEMBLE), flags=FLAG_OWN_VALID):
