@@ -90,7 +90,7 @@ def _cmd_run(args: argparse.Namespace) -> int:
                             fix_delay_max_s=args.fix_delay_max, progress=not args.quiet,
                             figures=not args.no_figures, agent_nice=args.agent_nice, signing=args.signing,
                             overwrite=args.overwrite, strict=args.strict, console=not args.no_console,
-                            console_port=args.console_port)
+                            console_port=args.console_port, agent_python=args.agent_python)
         report, code = run_fleet(args.config, opts, warn=_warn)
     except (ConfigError, RunDirError, ValueError, OSError, RuntimeError) as err:
         print(f"error: {err}", file=sys.stderr)
@@ -230,6 +230,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(default 0)")
     r.add_argument("--agent-nice", type=int, default=5, metavar="N",
                    help="niceness added to agents, 0 to 19, so the SITL keeps priority (default 5)")
+    r.add_argument("--agent-python", default=None, metavar="PATH",
+                   help="the Python the agents run on, e.g. PATH/bin/python of a venv with only the onboard install "
+                        "(pip install swarmdrop) (default: this one)")
     r.add_argument("--check", action="store_true", help="exit 1 if any acceptance check fails")
     r.add_argument("--no-console", action="store_true",
                    help="do not start the operator's console (default: `swarmdrop console` for the run, its address "

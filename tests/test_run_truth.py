@@ -155,6 +155,20 @@ def test_run_stops_with_the_agents_exit_codes_when_none_can_attach(tmp_path):
     assert m["recorded"] is False and m["fleet"]["aborted"] == fl.aborted
 
 
+def test_agent_python_runs_the_agents_and_nothing_else(tmp_path):
+    """--agent-python (FleetOptions.agent_python): the agents run on that interpreter (here one
+    that refuses to run anything), the SITL on the harness's own; so the agents die with its
+    exit code while the SITL starts and waits for them."""
+    fake = tmp_path / "onboard-python"
+    fake.write_text("#!/bin/sh\necho 'onboard: refused' >&2\nexit 5\n")
+    fake.chmod(0o755)
+    report, code = run_fleet(quick_config(tmp_path), FleetOptions(out_dir=tmp_path / "out", progress=False,
+                                                                  figures=False, agent_python=str(fake)))
+    assert code == EXIT_AGENTS_FAILED
+    assert report.fleet.dead_agents == {"0": 5, "1": 5, "2": 5}
+    assert "exited before every vehicle had attached" in report.fleet.aborted
+
+
 def test_an_interrupted_run_never_reports_a_completed_mission(tmp_path):
     """The case seen by a user: Ctrl-C at t = 0 into a directory that held a finished
     run printed "mission complete" and [PASS] from the old files."""

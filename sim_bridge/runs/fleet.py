@@ -85,6 +85,9 @@ class FleetOptions:
     progress: bool = True
     figures: bool = True
     python: str = sys.executable
+    agent_python: str | None = None
+    """The interpreter the agents run on (None: `python`), e.g. a venv with only the onboard
+    install (`pip install swarmdrop`) to fly the agents as a companion computer has them."""
     agent_nice: int = 0
     """Added niceness of agents (the SITL keeps priority, so simulated physics stays honest)."""
     signing: bool = False
@@ -263,7 +266,7 @@ class Fleet:
         adir = self.out / "agents"
         adir.mkdir(parents=True, exist_ok=True)
         for k in range(self.n):
-            args = [o.python, "-m", "swarmdrop.cli", "agent", "--vehicle-id", str(k),
+            args = [o.agent_python or o.python, "-m", "swarmdrop.cli", "agent", "--vehicle-id", str(k),
                     "--autopilot", f"udpin://127.0.0.1:{ports.agents[k]}", "--mission", str(self.config_path),
                     "--swarm-bind", f"127.0.0.1:{ports.agent_swarm + k}", "--swarm-peer", f"127.0.0.1:{ports.medium}",
                     "--output", o.output, "--rate", str(o.rate_hz), "--log-file", str(adir / f"agent_{k:02d}.log"),
