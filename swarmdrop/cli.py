@@ -319,10 +319,10 @@ def main(argv: list[str] | None = None) -> int:
         extra = EXTRA_OF.get(argv[0]) if argv else None
         missing = missing_packages(extra) if extra is not None else []
         if missing:
+            extras = "sim,sweep" if argv[0] == "sweep" else extra  # (Dask too, for a sweep on a cluster)
             print(f"swarmdrop {argv[0]}: needs the '{extra}' extra, not installed here (missing: "
-                  f"{', '.join(missing)}); install it with: pip install 'swarmdrop[{extra}]'"
-                  + (" (and 'swarmdrop[sim,sweep]' for a Dask sweep)" if argv[0] == "sweep" else "")
-                  + ". `swarmdrop agent` needs none of it.", file=sys.stderr)
+                  f"{', '.join(missing)}); install it with: pip install 'swarmdrop[{extras}]' (from a clone of the "
+                  f"repository: pip install '.[{extras}]'). `swarmdrop agent` needs none of it.", file=sys.stderr)
             return 2
         return int(args.func(args) or 0)
     except KeyboardInterrupt:
