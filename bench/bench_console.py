@@ -17,6 +17,8 @@ import sys
 import time
 from pathlib import Path
 
+from sim_bridge.runs.procs import cpu_s
+
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
@@ -26,14 +28,6 @@ RATE_HZ = 10.0
 WARM_S = 5.0
 MEASURE_S = 15.0
 TARGET_P95_MS = 50.0
-
-
-def _cpu_s(pid: int) -> float | None:
-    try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, ValueError, IndexError):
-        return None
 
 
 def start_console(args: list[str], log: Path) -> tuple[subprocess.Popen, str, int]:
@@ -82,11 +76,11 @@ def run(vehicles: int = VEHICLES, measure_s: float = MEASURE_S, screenshot: Path
                     page.wait_for_timeout(WARM_S * 1000)  # (the bench's warm-up: JIT, caches, a full trail)
                     page.evaluate("() => SDConsole.resetTimes()")
                     info0 = page.evaluate("() => SDConsole.info()")
-                    cpu0 = (_cpu_s(console.pid), time.monotonic())
+                    cpu0 = (cpu_s(console.pid), time.monotonic())
                     page.wait_for_timeout(measure_s * 1000)  # (the measuring window)
                     stats = page.evaluate("() => SDConsole.frameStats()")
                     info1 = page.evaluate("() => SDConsole.info()")
-                    cpu1 = (_cpu_s(console.pid), time.monotonic())
+                    cpu1 = (cpu_s(console.pid), time.monotonic())
                     if screenshot is not None:
                         page.screenshot(path=str(screenshot))
                 finally:

@@ -17,6 +17,8 @@ from pathlib import Path
 import pytest
 from lean_agent import EXTRAS_ONLY, lean_cmd
 
+from swarmdrop.cli import EXTRAS
+
 ROOT = Path(__file__).resolve().parents[1]
 PYPROJECT = tomllib.loads((ROOT / "pyproject.toml").read_text())
 IMPORT_TO_DIST = {"yaml": "pyyaml"}
@@ -55,6 +57,8 @@ def test_every_extras_package_is_in_an_extra_and_make_installs_them():
     assert {_dist(r) for r in extras["sim"]} == {"scipy", "numba", "matplotlib", "tqdm", "pymavlink"}
     assert {_dist(r) for r in extras["console"]} == {"aiohttp", "scipy"}
     assert "dask" in {_dist(r) for r in extras["sweep"]}
+    for extra, packages in EXTRAS.items():  # what the CLI checks for is what pyproject installs
+        assert {_dist(r) for r in extras[extra]} == set(packages), extra
     blocked = set(EXTRAS_ONLY) - {"llvmlite", "distributed"}  # (these come with numba and dask)
     in_extras = {_dist(r) for reqs in extras.values() for r in reqs}
     assert blocked <= in_extras
