@@ -167,6 +167,10 @@ def test_agent_python_runs_the_agents_and_nothing_else(tmp_path):
     assert code == EXIT_AGENTS_FAILED
     assert report.fleet.dead_agents == {"0": 5, "1": 5, "2": 5}
     assert "exited before every vehicle had attached" in report.fleet.aborted
+    r = cli("run", str(quick_config(tmp_path)), "--out", str(tmp_path / "o2"), "--agent-python",
+            str(tmp_path / "no-such-python"), "--quiet")
+    assert r.returncode == 2 and "--agent-python" in r.stderr and "no executable file" in r.stderr
+    assert not (tmp_path / "o2").exists()  # refused before anything was made
 
 
 def test_an_interrupted_run_never_reports_a_completed_mission(tmp_path):

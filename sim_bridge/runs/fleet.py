@@ -25,6 +25,7 @@ import dataclasses
 import json
 import math
 import os
+import shutil
 import signal
 import subprocess
 import sys
@@ -122,6 +123,10 @@ class FleetOptions:
         if not 0 <= self.agent_nice <= NICE_MAX:
             raise ConfigError(f"--agent-nice {self.agent_nice}: must be 0 to {NICE_MAX} (niceness added to the "
                               "agents; the SITL keeps its priority)")
+        py = self.agent_python
+        if py is not None and shutil.which(py) is None:  # (a path, or a name on PATH)
+            raise ConfigError(f"--agent-python {py}: no executable file there (give PATH/bin/python of a venv "
+                              "where `pip install swarmdrop` was run)")
         if self.base_port is not None and not 1 <= self.base_port <= PORT_MAX:
             raise ConfigError(f"--base-port {self.base_port}: a UDP port is 1 to {PORT_MAX}")
         if not 0 <= self.console_port <= PORT_MAX:
