@@ -281,7 +281,10 @@ def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
                   "--swarm-bind", f"127.0.0.1:{swarm_port}", "--swarm-peer", f"127.0.0.1:{radio_port}",
                   "--launch", "ground", "--lockstep", "--setup-timeout", "20", "--log-file", str(log),
                   "--set-loss-action", "hold",  # the SITL's PX4 boots with COM_OBL_RC_ACT 0 (drifts): refused
-                  "--no-stderr-log", "--stats", str(tmp_path / "agent.json")),
+                  "--no-stderr-log", "--stats", str(tmp_path / "agent.json"),
+                  # PX4: the link is the agent's alone (the streams it does not read are stopped);
+                  # ArduPilot: the default (streams left alone)
+                  *(["--stop-unread-streams"] if dialect == "px4" else [])),
         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         _wait_for(lambda: log.exists() and "-> HOVER" in log.read_text(), 90, "HOVER", agent, log)
@@ -304,10 +307,10 @@ def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
         assert phase in text, text
     # what crossed the link: arming and the autopilot's take-off command, accepted, before any setpoint
     conn = mavutil.mavlink_connection(str(tlog))
-    acks, first_sp_t, cmds, climbed_t, modes = {}, None, [], None, []
+    acks, first_sp_t, cmds, climbed_t, modes, last_att_t = {}, None, [], None, [], None
     while True:
         m = conn.recv_match(type=["COMMAND_LONG", "COMMAND_ACK", "SET_POSITION_TARGET_LOCAL_NED",
-                                  "LOCAL_POSITION_NED", "HEARTBEAT"])
+                                  "LOCAL_POSITION_NED", "HEARTBEAT", "ATTITUDE"])
         if m is None:
             break
         t = m._timestamp - EPOCH_UNIX_S
@@ -322,6 +325,8 @@ def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
             climbed_t = t
         elif typ == "HEARTBEAT" and m.get_srcComponent() == 1:
             modes.append(m.custom_mode)
+        elif typ == "ATTITUDE":
+            last_att_t = t
     conn.close()
     assert 400 in [c for _, c in cmds] and 22 in [c for _, c in cmds]
     assert 0 in acks[400] and 0 in acks[22]  # MAV_RESULT_ACCEPTED
@@ -333,3 +338,13 @@ def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
     assert modes[-1] == d.custom_mode(Mode.OFFBOARD)
     stats = json.loads((tmp_path / "agent.json").read_text())
     assert stats["phase"] == Phase.HOVER.name and stats["autopilot"]["dialect"] == dialect
+    # The SITL streams ATTITUDE (10 Hz), GLOBAL_POSITION_INT, SYS_STATUS, GPS_RAW_INT, HOME_POSITION and
+    # BATTERY_STATUS by default; the agent reads none of them (it asked for LOCAL_POSITION_NED,
+    # ATTITUDE_QUATERNION, EXTENDED_SYS_STATE and SYSTEM_TIME, which it keeps).
+    assert last_att_t is not None
+    if dialect == "px4":
+        assert sorted(stats["autopilot"]["streams_stopped"]) == sorted(
+            ["ATTITUDE", "GLOBAL_POSITION_INT", "SYS_STATUS", "GPS_RAW_INT", "HOME_POSITION", "BATTERY_STATUS"])
+        assert last_att_t < first_sp_t  # stopped at the end of set-up, before the first setpoint
+    else:
+        assert stats["autopilot"]["streams_stopped"] == [] and last_att_t > first_sp_t + 1.0

@@ -388,6 +388,9 @@ class MavEndpoint:
         self.unencodable = 0
         """Queued messages that could not be encoded (out-of-range values): dropped."""
         self.outbox_drops = 0
+        self.on_unknown: Callable[[int, bytes], None] | None = None
+        """Told (msgid, frame) of each well-formed frame whose message the codec does not
+        define (counted in unknown and dropped either way)."""
 
     def _drain(self, take: Callable[[bytes, Any], None]) -> None:
         """Pass every waiting frame and its source address to take, which decodes it and
@@ -408,8 +411,10 @@ class MavEndpoint:
                 continue
             try:
                 take(frame, addr)
-            except UnknownMessage:
+            except UnknownMessage as err:
                 self.unknown += 1
+                if self.on_unknown is not None:
+                    self.on_unknown(err.msgid, frame)
                 continue
             except FrameError:
                 self.bad_frames += 1

@@ -81,6 +81,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="fly although the autopilot's companion-loss parameters would leave the vehicle drifting, "
                         "returning home, falling, or beyond the mission's loss envelope (swarm.loss), where the "
                         "swarm's ghost does not cover it (a WARNING instead of refusing, exit 4) (default: refuse)")
+    p.add_argument("--stop-unread-streams", action="store_true",
+                   help="the autopilot link is this agent's alone: ask the autopilot to stop, on this link only, "
+                        "every stream the agent does not read (ATTITUDE, GLOBAL_POSITION_INT, SYS_STATUS, ...), "
+                        "which saves CPU; not behind a router that a ground station shares, whose view would "
+                        "freeze (docs/companion.md, 'Streams') (default: leave the streams alone)")
     p.add_argument("--strict", action="store_true",
                    help="refuse a mission with feasibility warnings too, not only errors (exit 2; "
                         "docs/scenario.md, 'Can it fly?') (default: warnings are logged)")
@@ -149,7 +154,8 @@ def run(args) -> int:
             lockstep=args.lockstep, setup_timeout_s=args.setup_timeout,
             stats_path=Path(args.stats) if args.stats else None, signing=args.signing,
             signing_key_file=Path(args.signing_key) if args.signing_key else None,
-            allow_drifting_loss=args.allow_drifting_loss, set_loss_action=args.set_loss_action),
+            allow_drifting_loss=args.allow_drifting_loss, set_loss_action=args.set_loss_action,
+            stop_unread_streams=args.stop_unread_streams),
             strict=args.strict, warn=log.warning, source=str(args.mission))
         if cfg.stats_path is not None:
             check_writable(cfg.stats_path)  # now, not in flight at the first write

@@ -128,6 +128,9 @@ class NodeConfig:
     set_loss_action: Literal["hold", "land"] | None = None
     """Set the autopilot's companion-loss action to this at set-up (PX4 COM_OBL_RC_ACT 5 or 4),
     logged at WARNING with the old value; None: only read and verify it."""
+    stop_unread_streams: bool = False
+    """The autopilot link is the agent's alone: stop the streams it does not read on it
+    (companion.node.streams; docs/companion.md, "Streams")."""
 
     @property
     def assigned_sysid(self) -> int:

@@ -155,7 +155,7 @@ class AgentNode:
                     log.error("internal error", exc_info=err)
                     code = ExitCode.ERROR
         finally:
-            for task in (body, stop, self.offboard.task):
+            for task in (body, stop, self.offboard.task, self.setup.streams_task):
                 if task is not None and not task.done():
                     task.cancel()
             self._loop.remove_reader(self.ap_ep.link.fileno())

@@ -34,6 +34,7 @@ from companion.link.signing import Signing, SigningError, TimestampStore, load_k
 from companion.link.wire import Codec
 from companion.node.config import NodeConfig
 from companion.node.exits import ExitCode, NodeFailure
+from companion.node.streams import UnreadStreams
 from companion.node.swarmlink import SwarmLink
 from companion.node.vehicle import CommandError, VehicleLink
 
@@ -185,6 +186,9 @@ class Setup:
         self.loop: PositionLoop | None = None
         """The autopilot's position-loop gains (acceleration output; None: not read, or its
         dialect does not say): the slot-hold integral is driven into it (companion.slot_hold)."""
+        self.streams: UnreadStreams | None = None
+        """--stop-unread-streams: what it stopped (from the end of set-up)."""
+        self.streams_task: asyncio.Future | None = None
 
     def swarm_bound(self) -> str:
         """The swarm socket's address as bound (the port the OS chose for --swarm-bind HOST:0)."""
@@ -311,6 +315,11 @@ class Setup:
                     self.loop = await self.read_loop()
         except CommandError as err:
             raise NodeFailure(ExitCode.SETUP, f"parameters of {self.ap_name}: {err}") from None
+        if cfg.stop_unread_streams:
+            self.streams = UnreadStreams(v.stop_stream, loop.time)
+            v.unread = self.streams.seen
+            self.vehicle.ep.on_unknown = v.unknown_frame
+            self.streams_task = asyncio.ensure_future(self.streams.run())
         self.ready_wall_s = time.monotonic() - self.start_wall
         log.info("%s %.2f s: %s, %s, %s output at %g Hz, %s launch%s", SET_UP_LOG_TEXT, self.ready_wall_s, self.ap_name,
                  d.name, cfg.output, cfg.rate_hz, cfg.launch, ", lockstep" if cfg.lockstep else "")

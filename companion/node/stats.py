@@ -27,6 +27,7 @@ from companion.link.signing import SigningCounters
 
 if TYPE_CHECKING:
     from companion.node.runner import AgentNode
+    from companion.node.streams import UnreadStreams
 
 LAT_BIN_US, LAT_BINS = 50, 1000
 """Latency histogram in the statistics: 50 µs bins up to 50 ms (a fleet pools them)."""
@@ -162,6 +163,12 @@ def _opt_float(data: Mapping[str, Any], key: str) -> float | None:
     return None if data.get(key) is None else _num(data, key, float, math.nan)
 
 
+def _str_list(data: Mapping[str, Any], key: str) -> list[str]:
+    """A list of strings (anything else: empty)."""
+    v = data.get(key)
+    return [x for x in v if isinstance(x, str)] if isinstance(v, list) else []
+
+
 def _opt_str(data: Mapping[str, Any], key: str) -> str | None:
     value = data.get(key)
     return value if isinstance(value, str) else None
@@ -253,13 +260,20 @@ class AutopilotLinkStats:
     stranger_drops: int = 0
     """Frames claiming our autopilot's ids from another address while it talks (udpin,
     signing off: companion.link.endpoints, peer_ids): dropped."""
+    streams_stopped: list[str] = dataclasses.field(default_factory=list)
+    """Streams the autopilot stopped on this link at the agent's request (--stop-unread-streams)."""
+    streams_not_stopped: list[str] = dataclasses.field(default_factory=list)
+    """Unread messages whose stop it refused or did not answer (replies, or not streams)."""
 
     def to_json(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
     @classmethod
     def from_json(cls, data: Mapping[str, Any]) -> AutopilotLinkStats:
-        return cls(_opt_str(data, "dialect"), *(_num(data, f.name, int, 0) for f in dataclasses.fields(cls)[1:]))
+        counts: dict[str, Any] = {f.name: _num(data, f.name, int, 0) for f in dataclasses.fields(cls)
+                                  if f.type in ("int", int)}
+        return cls(_opt_str(data, "dialect"), streams_stopped=_str_list(data, "streams_stopped"),
+                   streams_not_stopped=_str_list(data, "streams_not_stopped"), **counts)
 
 
 @dataclass(frozen=True)
@@ -457,6 +471,14 @@ class AgentStats:
 
 
 # ----------------------------------------------------------------------------- from a node
+def _stream_stops(streams: UnreadStreams | None) -> dict[str, list[str]]:
+    if streams is None:
+        return {}
+    from companion.node.streams import msg_name
+    return {"streams_stopped": [msg_name(m) for m in streams.stopped],
+            "streams_not_stopped": [msg_name(m) for m in streams.refused if m not in streams.stopped]}
+
+
 def collect(node: AgentNode) -> AgentStats:
     """Snapshot everything a node counts (every STATS_PERIOD_S and at exit)."""
     c = node.tick.counters
@@ -478,7 +500,8 @@ def collect(node: AgentNode) -> AgentStats:
         autopilot=AutopilotLinkStats(
             dialect=v.dialect.name if v.dialect else None, bad_frames=ap_ep.bad_frames,
             unknown_messages=ap_ep.unknown, foreign=v.foreign, dropped_nonfinite=v.dropped_nonfinite,
-            bytes_in=ap_ep.link.bytes_in, bytes_out=ap_ep.link.bytes_out, stranger_drops=ap_ep.link.stranger_drops),
+            bytes_in=ap_ep.link.bytes_in, bytes_out=ap_ep.link.bytes_out, stranger_drops=ap_ep.link.stranger_drops,
+            **_stream_stops(node.setup.streams)),
         swarm=swarm.counters(),
         identity=IdentityStats(
             vehicle_id=cfg.vehicle_id, sysid=cfg.assigned_sysid, autopilot_sysid=cfg.autopilot_sysid,

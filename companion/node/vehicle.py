@@ -19,6 +19,7 @@ import logging
 import math
 import struct
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
@@ -36,6 +37,7 @@ from companion.link.enums import (
     MavType,
     MsgId,
 )
+from companion.link.framing import frame_ids
 from companion.link.params import decode_param_value, encode_param_value, param_name
 from companion.mission import GeodeticOrigin
 
@@ -53,6 +55,10 @@ pinned pymavlink's common.xml (hence MavResult) does not have yet; a value witho
 (COMMAND_LONG_ONLY, COMMAND_INT_ONLY) is shown as its number."""
 PARAM_INDEX_BY_NAME = -1
 """PARAM_REQUEST_READ.param_index that asks by param_id instead."""
+
+
+STOP_INTERVAL_US = -1.0
+"""MAV_CMD_SET_MESSAGE_INTERVAL's param2 that stops a stream (MESSAGE_INTERVAL: -1 = disabled)."""
 
 
 class CommandError(RuntimeError):
@@ -109,6 +115,9 @@ class VehicleLink:
         self._msg_waiters: dict[int, list[asyncio.Future]] = {}
         self.new_control = False
         """Set when a LOCAL_POSITION_NED newer than the last one arrived."""
+        self.unread: Callable[[int], None] | None = None
+        """Told the id of each message from our autopilot that the agent does not read
+        (companion.node.streams: --stop-unread-streams); None: nobody asks."""
         codec = endpoint.codec  # named-field builders, resolved once (companion.link.builder)
         self._heartbeat = codec.builder(MsgId.HEARTBEAT)
         self._command_long = codec.builder(MsgId.COMMAND_LONG)
@@ -150,6 +159,8 @@ class VehicleLink:
                 self._other_autopilot(src)
             return
         msgid = msg.get_msgId()
+        if msgid not in READ_IDS and self.unread is not None and msgid not in self._msg_waiters:
+            self.unread(msgid)
         if msgid in self.RAW_IDS:  # one code path for these, whichever way they were decoded
             self.handle_raw(msgid, src, AUTOPILOT, tuple(getattr(msg, f) for f in msg.ordered_fieldnames))
         else:
@@ -345,6 +356,20 @@ class VehicleLink:
         """
         await self.command(MavCmd.MAV_CMD_SET_MESSAGE_INTERVAL, [msgid, interval_s * 1e6])
 
+    async def stop_stream(self, msgid: int) -> None:
+        """MAV_CMD_SET_MESSAGE_INTERVAL(msgid, -1): stop streaming msgid on this link.
+
+        Raises:
+            CommandError: refused, or not acknowledged.
+        """
+        await self.command(MavCmd.MAV_CMD_SET_MESSAGE_INTERVAL, [msgid, STOP_INTERVAL_US], timeout_s=0.5, retries=2)
+
+    def unknown_frame(self, msgid: int, frame: bytes) -> None:
+        """A frame of a message the lean dialect does not define (MavEndpoint.on_unknown):
+        reported as unread if it claims to come from our autopilot."""
+        if self.unread is not None and frame_ids(frame) == (self.target_sysid, AUTOPILOT):
+            self.unread(msgid)
+
     async def get_param(self, name: str, timeout_s: float = 1.0, retries: int = 3) -> float:
         """PARAM_REQUEST_READ by name. Raises CommandError."""
         fut = asyncio.get_running_loop().create_future()
@@ -375,3 +400,9 @@ class VehicleLink:
         if abs(got - value) > 1e-6 * max(1.0, abs(value)):
             raise CommandError(f"parameter {name}: set to {value}, autopilot kept {got}")
         return got
+
+
+READ_IDS = frozenset(VehicleLink.RAW_IDS | {MsgId[name[4:].upper()] for name in vars(VehicleLink)
+                                            if name.startswith("_on_")})
+"""The messages the agent reads from its autopilot (a `_on_<name>` handler, or RAW_IDS);
+a message it waits for (request_message) counts as read while it waits."""

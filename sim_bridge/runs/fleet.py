@@ -279,7 +279,10 @@ class Fleet:
                     # The SITL's autopilots boot with their stock loss action (PX4 COM_OBL_RC_ACT 0: with
                     # no RC a descent with no horizontal control, which the agents refuse): as an operator
                     # would, the agents set Hold at set-up (ArduPilot's GUIDED holds anyway).
-                    "--set-loss-action", "hold"]
+                    "--set-loss-action", "hold",
+                    # Each SITL companion port is its agent's alone (the console and ground stations
+                    # use the GCS port): the streams an agent does not read only cost it CPU.
+                    "--stop-unread-streams"]
             if o.lockstep:
                 args.append("--lockstep")
             args += self._signing_args()
