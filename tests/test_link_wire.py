@@ -30,6 +30,7 @@ from companion.link.framing import (
     crc16_x25,
     crc16_x25_hqx,
     signature_of,
+    split_datagram,
 )
 from companion.link.msgdef import generate
 from companion.link.msgdef import swarmdrop as sd
@@ -455,6 +456,23 @@ def test_frame_splitter_framing_only_and_bounds(codec):
     assert sp.feed(bytes(odd[:3]) + signed) == [signed] and sp.bytes_skipped == 3
     with pytest.raises(ValueError):
         FrameSplitter(max_buffer=100)
+
+
+def test_split_datagram_one_frame_many_frames_garbage_and_truncation():
+    rng = random.Random(11)
+    frames = _frames(rng, 40)
+    signer = sd.MAVLink(None, 1, 1)
+    signer.signing.secret_key, signer.signing.sign_outgoing = bytes(32), True
+    signed = sd.MAVLink_swarmdrop_tick_message(5).pack(signer)
+    for f in frames + [signed]:  # one whole frame a datagram (the fast path), as bytes or a view
+        assert split_datagram(f) == ([f], 0) and split_datagram(bytearray(f)) == ([f], 0)
+        assert type(split_datagram(bytearray(f))[0][0]) is bytes
+    assert split_datagram(b"".join(frames[:5])) == (frames[:5], 0)
+    junk = _garbage(rng, False)
+    assert split_datagram(junk + frames[0] + frames[1]) == ([frames[0], frames[1]], len(junk))
+    assert split_datagram(frames[0] + b"\x00") == ([frames[0]], 1)  # one byte more: not the fast path
+    v2 = next(f for f in frames if f[0] == 0xFD)
+    assert split_datagram(v2[:-1]) == ([], len(v2) - 1)  # one byte short: truncated, all skipped
 
 
 # ----------------------------------------------------------------------------- the dialect

@@ -141,9 +141,14 @@ def split_datagram(data: bytes) -> tuple[list[bytes], int]:
     Returns:
         (frames, skipped_bytes).
     """
+    n = len(data)
+    if n > 2 and data[0] == MAGIC_V2 and n == 12 + data[1] + (SIGNATURE_LEN if data[2] & IFLAG_SIGNED else 0):
+        # one whole MAVLink 2 frame, the common case (PX4 and our endpoints send one frame a
+        # datagram, the swarm's states come one a datagram): no scan, no copy
+        return [data if type(data) is bytes else bytes(data)], 0
     frames: list[bytes] = []
     skipped = 0
-    i, n = 0, len(data)
+    i = 0
     while i < n:
         magic = data[i]
         if magic == MAGIC_V2 and i + 3 <= n:
