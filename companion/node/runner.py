@@ -39,6 +39,8 @@ log = logging.getLogger("swarmdrop.agent")
 
 STATS_PERIOD_S = 5.0
 """The statistics file is rewritten this often (and at exit), s."""
+SUPERVISE_PERIOD_S = 1.0
+"""The companion HEARTBEAT and the autopilot-loss watchdog run this often, s."""
 
 
 class AgentNode:
@@ -115,10 +117,10 @@ class AgentNode:
             if self.loop.time() >= next_stats:
                 self.write_stats()
                 next_stats += STATS_PERIOD_S
-            try:
-                await asyncio.wait_for(self._stop.wait(), 1.0)
-            except asyncio.TimeoutError:
-                pass
+            # A plain sleep: one timer and one wake-up a second (wait_for on the stop event
+            # made a task and a timeout each second, several loop turns); run() cancels
+            # this on stop.
+            await asyncio.sleep(SUPERVISE_PERIOD_S)
 
     async def _body(self) -> None:
         await self.setup.set_up()
