@@ -7,6 +7,9 @@
 * `capacity`: 30 s of the paper scenario at several fleet sizes (every vehicle released
   within the first 22.5 s, assembling at the first waypoint): the largest that still holds a
   real-time factor of 0.99.
+* `wakeup_floor_50hz`: a bare asyncio process woken by a UDP datagram 50 times a second,
+  which reads it and answers (bench/bench_floor.py): the machine's own cost of an agent's
+  control ticks before any of the agent's work, to read its CPU against.
 * `agent_startup`: one agent process against a one-vehicle SITL on a quiet machine: time
   from process start to a constructed node (imports, mission, sockets), setup time, PSS.
 """
@@ -180,6 +183,12 @@ def agent_startup(tmp: Path) -> dict:
         terminate_all((agent, sitl))
 
 
+def wakeup_floor() -> dict:
+    from bench.bench_floor import run as floor
+
+    return floor(rate_hz=50.0)
+
+
 def run(capacity_sizes=(40, 60, 80, 100)) -> dict:
     with tempfile.TemporaryDirectory(prefix="swarmdrop-bench-") as d:
         tmp = Path(d)
@@ -187,6 +196,8 @@ def run(capacity_sizes=(40, 60, 80, 100)) -> dict:
             "name": "fleet",
             "description": "swarmdrop run: the MAVLink SITL plus one swarmdrop agent process per vehicle, real time",
             "agent_startup": agent_startup(tmp),
+            # before the fleet, on the quiet machine: what waking 50 times a second costs here
+            "wakeup_floor_50hz": wakeup_floor(),
             "paper_40": paper_40(tmp),
             "capacity": capacity(tmp, capacity_sizes),
         }

@@ -5,7 +5,8 @@
 - sitl.json: the MAVLink SITL alone at N = 40, 100, 250;
 - wire.json: the lean MAVLink codec against pymavlink (µs per message);
 - fleet.json: `swarmdrop run` (SITL + one agent process per vehicle) on paper_40 in real
-  time, the largest fleet that keeps real time, and one agent's start-up time and PSS;
+  time, the largest fleet that keeps real time, one agent's start-up time and PSS, and the
+  machine's floor under an agent's CPU (a bare asyncio process woken 50 times a second);
 - signing.json: paper_40 unsigned and with `--signing`, back to back (the CPU signing costs),
   and µs to sign and check one frame;
 - sweep.json: `swarmdrop sweep` on paper_40 over 100 seeds on a local Dask cluster: wall time,
