@@ -147,7 +147,7 @@ def test_nan_thrust_is_rejected_not_flown_as_zero():
         assert "thrust not finite" in s.router._last_reject[0]
     _fly(s, 0.5)
     assert s.state.pos_ned_m[0, 2] - z0 < 0.1, "it fell: the bad thrust was flown (down is +z)"
-    assert ap._offb.vel_ned_mps == pytest.approx([0, 0, 0])  # still the last valid setpoint
+    assert ap.offb.sp.vel_ned_mps == pytest.approx([0, 0, 0])  # still the last valid setpoint
 
 
 def test_body_and_yaw_rates_are_clamped():
@@ -156,13 +156,13 @@ def test_body_and_yaw_rates_are_clamped():
     ap = _hovering_offboard(s)
     _send(s, 0, mavlink.MAVLink_set_attitude_target_message(0, 1, 1, 128, [1, 0, 0, 0], 1e30, -1e30, 1e30, 0.5))
     lim = ap.knobs.limits()
-    assert ap._offb.body_rate_radps == pytest.approx([lim.roll_rate_max_radps, -lim.pitch_rate_max_radps,
+    assert ap.offb.sp.body_rate_radps == pytest.approx([lim.roll_rate_max_radps, -lim.pitch_rate_max_radps,
                                                       lim.yaw_rate_max_radps])
     _send(s, 0, _vel_target((0, 0, 0), mask=0b010111000111))  # velocity + yaw rate
     msg = mavlink.MAVLink_set_position_target_local_ned_message(0, 1, 1, 1, 0b010111000111, 0, 0, 0, 0, 0, 0,
                                                                  0, 0, 0, 0, 1e30)
     _send(s, 0, msg)
-    assert ap._offb.yaw_rate_radps == pytest.approx(lim.yaw_rate_max_radps)
+    assert ap.offb.sp.yaw_rate_radps == pytest.approx(lim.yaw_rate_max_radps)
 
 
 def test_velocity_and_far_position_targets_respect_px4_speed_limits():
@@ -171,8 +171,8 @@ def test_velocity_and_far_position_targets_respect_px4_speed_limits():
     s = SitlServer(sitl_config(1, params={"MPC_XY_VEL_MAX": 5.0}))
     ap = _hovering_offboard(s)
     _send(s, 0, _vel_target((1e30, 1e30, -1e30)))
-    assert np.hypot(*ap._offb.vel_ned_mps[:2]) == pytest.approx(5.0)
-    assert ap._offb.vel_ned_mps[2] == pytest.approx(-3.0)  # MPC_Z_VEL_MAX_UP
+    assert np.hypot(*ap.offb.sp.vel_ned_mps[:2]) == pytest.approx(5.0)
+    assert ap.offb.sp.vel_ned_mps[2] == pytest.approx(-3.0)  # MPC_Z_VEL_MAX_UP
     assert _fly(s, 3.0) < 5.0 * 1.1
     pos_only = 0b110111111000
     _send(s, 0, _vel_target((0, 0, 0), x=1e30, y=0.0, z=float(s.state.pos_ned_m[0, 2]), mask=pos_only))

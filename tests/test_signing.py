@@ -204,7 +204,7 @@ def test_sitl_with_signing_required_ignores_unsigned_forged_and_replayed(key_fil
             assert time.monotonic() < deadline, sg
             time.sleep(0.02)  # polling a condition with a deadline
         assert not ap.armed and ap.mode == mode_before and server.params[0]["COM_OF_LOSS_T"] == 3.0
-        assert math.isnan(server.fleet.released_at_s[0]) and ap._offb is None
+        assert math.isnan(server.fleet.released_at_s[0]) and ap.offb.sp is None
         # telemetry still goes to the signed client, not to whoever sent the last datagram
         c.drain()
         assert c.wait("HEARTBEAT", lambda m: m.get_srcSystem() == 1, 3) is not None

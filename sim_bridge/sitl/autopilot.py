@@ -8,7 +8,9 @@ stream to enter OFFBOARD, flies the last setpoint for COM_OF_LOSS_T and then doe
 COM_OBL_RC_ACT says; ArduPilot flies setpoints only in GUIDED, enters GUIDED without a
 stream, moves its target on along the last velocity and acceleration until GUID_TIMEOUT,
 then stops (or levels) but stays in GUIDED. What each does on loss is the companion
-dialect's LossBehaviour for the vehicle's parameters (AutopilotBehaviour.offboard_lost).
+dialect's LossBehaviour for the vehicle's parameters (AutopilotBehaviour.offboard_lost). The
+offboard target itself (the last setpoint, and what is left of it after a loss) is
+sim_bridge.sitl.offboard_target.
 
 It reads its vehicle's row of the shared FleetState (world NED frame) and
 publishes the inner-loop setpoint in `sp` (a one-row FleetSetpoint, world frame;
@@ -33,18 +35,17 @@ from companion.link.dialects.base import (
     STATE_ACTIVE,
     STATE_CRITICAL,
     STATE_STANDBY,
-    CarryOn,
 )
 from companion.link.enums import MavResult, MavSeverity
 from companion.link.setpoints import AttitudeSetpoint, TrajectorySetpoint
 from companion.state import FleetSetpoint, FleetState
 from sim_bridge.sitl.autopilots import AutopilotBehaviour
+from sim_bridge.sitl.offboard_target import OffboardTarget
 from sim_bridge.sitl.params_table import ParamTable
 from sim_bridge.world.autopilot_model import (
     LAND_DETECT_S,
     THROW_UPRIGHT_COS,
     THROW_UPRIGHT_THRUST,
-    braked_velocity,
     hold_point,
     on_ground_and_slow,
     throw_recovered,
@@ -105,17 +106,8 @@ class Autopilot:
         """Set on any mode or arming change; the server then sends a HEARTBEAT at once."""
         self.setpoints_ignored = 0
         """Offboard setpoints dropped because the mode does not fly them (ArduPilot outside GUIDED)."""
-        self._offb: TrajectorySetpoint | AttitudeSetpoint | None = None
-        self._offb_last_t = -math.inf
-        self._offb_timed_out = False
-        self._stop_pos: np.ndarray | None = None
-        """Where a timed-out offboard target stopped (ArduPilot: the moved-on target), world NED."""
-        self._stop_vel: tuple[np.ndarray, float, float] | None = None
-        """A timed-out velocity target (no position): (its velocity, when it timed out, when it
-        is zero); it is
-        brought to zero at the autopilot's braking limits and no position is held (ArduPilot
-        GUIDED: the velocity target is zeroed through the kinematic shaping, position is not
-        stabilised)."""
+        self.offb = OffboardTarget()
+        """The companion's last setpoint (world frame) and what is left of it after a loss."""
         self._descend_drift = False
         """Failsafe descent with no horizontal control (PX4 COM_OBL_RC_ACT 0-2 without RC)."""
         self._uprighting = True
@@ -198,7 +190,7 @@ class Autopilot:
         return self._fence_breached
 
     def offboard_live(self, now_s: float) -> bool:
-        return self._offb is not None and now_s - self._offb_last_t <= self.knobs.offboard_timeout_s
+        return self.offb.live(now_s, self.knobs.offboard_timeout_s)
 
     def prearm_failure(self, now_s: float) -> str | None:
         if self.docked and not self.behaviour.may_arm_docked(self.params, self.mode):
@@ -278,7 +270,7 @@ class Autopilot:
         if mode == Mode.TAKEOFF:
             self._tko_target_z = self.home_ned_m[2] - self.knobs.takeoff_alt_m
         if mode == Mode.OFFBOARD and self.behaviour.offboard_entry_clears_setpoint:
-            self._offb = None  # (ArduPilot's GUIDED starts holding; only setpoints sent from now on count)
+            self.offb.sp = None  # (ArduPilot's GUIDED starts holding; only setpoints sent from now on count)
         self._set_mode(mode, now_s)
         return ACCEPTED
 
@@ -309,10 +301,8 @@ class Autopilot:
                 return False
             sp = TrajectorySetpoint(sp.pos_ned_m + self.origin_ned_m, sp.vel_ned_mps, sp.acc_ned_mps2, sp.yaw_rad,
                                     sp.yaw_rate_radps)
-        self._offb = sp
-        self._offb_last_t = self._now_s = now_s
-        if self._offb_timed_out:
-            self._offb_timed_out = False
+        self.offb.set(sp, now_s)
+        self._now_s = now_s
         if self.mode == Mode.OFFBOARD:
             self._publish()
         return True
@@ -322,10 +312,10 @@ class Autopilot:
         setpoints"): in Offboard the vehicle stops (zero velocity) and holds its heading. The
         offboard signal is not refreshed, so a stream of invalid setpoints ends in the
         offboard-loss failsafe after COM_OF_LOSS_T, as in PX4."""
-        if self.mode != Mode.OFFBOARD or self._offb is None:
+        if self.mode != Mode.OFFBOARD or self.offb.sp is None:
             return
         nan3 = np.full(3, np.nan)
-        self._offb = TrajectorySetpoint(nan3, np.zeros(3), nan3.copy(), self.yaw, math.nan)
+        self.offb.sp = TrajectorySetpoint(nan3, np.zeros(3), nan3.copy(), self.yaw, math.nan)
         self._publish()
 
     # ---- events from the server -------------------------------------------------
@@ -374,41 +364,23 @@ class Autopilot:
         if self.mode == Mode.TAKEOFF and self.armed and not self.throwing:
             self._takeoff_progress(now_s, dt)
         if self.behaviour.attitude_thrust_follows_tilt and self.mode == Mode.OFFBOARD \
-                and isinstance(self._offb, AttitudeSetpoint) and not self._offb_timed_out:
+                and isinstance(self.offb.sp, AttitudeSetpoint) and not self.offb.timed_out:
             self._publish()  # the thrust follows the tilt (angle boost) or a climb rate
-        elif self._target_moves_on() or (self._stop_vel is not None and self._offb_timed_out
-                                          and self.mode == Mode.OFFBOARD and now_s <= self._stop_vel[2] + dt):
+        elif self._target_moves_on() or (self.offb.stop_vel is not None and self.offb.timed_out
+                                          and self.mode == Mode.OFFBOARD and now_s <= self.offb.stop_vel[2] + dt):
             self._publish()  # the target moves on along the last velocity and acceleration, or brakes to rest
         self._check_geofence(now_s)
 
     # ---- internals ---------------------------------------------------------------
     def _offboard_watchdog(self, now_s: float) -> None:
-        if self.mode == Mode.OFFBOARD and self._offb is not None and not self.offboard_live(now_s):
-            if not self._offb_timed_out:
+        if self.mode == Mode.OFFBOARD and self.offb.sp is not None and not self.offboard_live(now_s):
+            if not self.offb.timed_out:
                 self.behaviour.offboard_lost(self, now_s)
 
     def _target_moves_on(self) -> bool:
-        """A trajectory setpoint with a velocity or an acceleration is flown by an autopilot
-        whose target moves on along them (ArduPilot GUIDED) and has not timed out."""
-        o = self._offb
-        return (self.mode == Mode.OFFBOARD and isinstance(o, TrajectorySetpoint) and not self._offb_timed_out
-                and self.knobs.loss.carry_on == CarryOn.VELOCITY_ACCELERATION
-                and bool(np.isfinite(o.vel_ned_mps).any() or np.isfinite(o.acc_ned_mps2).any()))
-
-    def _braking(self) -> tuple[np.ndarray, np.ndarray]:
-        """(velocity, acceleration) of a zeroed velocity target now: brought from its value at
-        the timeout to zero at the loss behaviour's braking limits (horizontal, vertical)."""
-        assert self._stop_vel is not None  # (only called while one is braking)
-        v0, t0, _ = self._stop_vel
-        lb = self.knobs.loss
-        return braked_velocity(v0, max(0.0, self._now_s - t0), lb.brake_hor_mps2, lb.brake_ver_mps2)
-
-    def _moved_on(self, o: TrajectorySetpoint, tau_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """(position, velocity) of a target that moved on for tau_s along its velocity and
-        acceleration (NaN axes stay NaN)."""
-        acc = np.where(np.isfinite(o.acc_ned_mps2), o.acc_ned_mps2, 0.0)
-        vel0 = np.where(np.isfinite(o.vel_ned_mps), o.vel_ned_mps, 0.0)
-        return o.pos_ned_m + vel0 * tau_s + 0.5 * acc * tau_s * tau_s, o.vel_ned_mps + acc * tau_s
+        """In the offboard mode, a target that moves on along its velocity and acceleration
+        (ArduPilot GUIDED) and has not timed out."""
+        return self.mode == Mode.OFFBOARD and self.offb.moves_on(self.knobs.loss)
 
     # ---- primitives the autopilot behaviours act through ---------------------------
     def event(self, severity: int, text: str) -> None:
@@ -444,25 +416,14 @@ class Autopilot:
         moved on to (ArduPilot projects it along the last velocity and acceleration until the
         timeout), a velocity target becomes zero velocity (no position held), anything else
         stops where the vehicle comes to rest, until setpoints come again."""
-        o = self._offb
-        self._offb_timed_out = True
+        self.offb.stop(self._now_s, self.knobs.offboard_timeout_s, self.knobs.loss)
         self._capture_hold()
-        self._stop_pos, self._stop_vel = None, None
-        if isinstance(o, TrajectorySetpoint) and np.isfinite(o.pos_ned_m).all():
-            if self.knobs.loss.carry_on == CarryOn.VELOCITY_ACCELERATION:
-                self._stop_pos = self._moved_on(o, self.knobs.offboard_timeout_s)[0]
-            else:
-                self._stop_pos = o.pos_ned_m.copy()
-        elif isinstance(o, TrajectorySetpoint) and np.isfinite(o.vel_ned_mps).all():
-            v0, lb = self._moved_on(o, self.knobs.offboard_timeout_s)[1], self.knobs.loss
-            t_brake = max(float(np.linalg.norm(v0[:2])) / lb.brake_hor_mps2, abs(float(v0[2])) / lb.brake_ver_mps2)
-            self._stop_vel = (v0, self._now_s, self._now_s + t_brake)
         self.event(SEV_WARNING, text)
         self._publish()
 
     def clear_offboard_setpoint(self) -> None:
         """Forget the last offboard setpoint (only setpoints sent from now on count)."""
-        self._offb = None
+        self.offb.sp = None
 
     def _arm(self, now_s: float) -> None:
         self.armed = True
@@ -486,7 +447,7 @@ class Autopilot:
         self.mode = mode
         self.changed = True
         self._failsafe_t = None
-        self._offb_timed_out = False
+        self.offb.timed_out = False
         self._descend_drift = False
         if mode not in (Mode.TAKEOFF, Mode.THROW):
             self.throwing = False
@@ -533,7 +494,7 @@ class Autopilot:
             nxt = self.behaviour.after_takeoff_mode
             self._set_mode(nxt, now_s)
             if nxt == Mode.OFFBOARD and self.behaviour.offboard_entry_clears_setpoint:
-                self._offb = None
+                self.offb.sp = None
             self._hold_pos[2] = target
             self._publish()
             return
@@ -572,7 +533,8 @@ class Autopilot:
         for f in sp.__dataclass_fields__:
             getattr(sp, f)[...] = np.nan
         self.rates_only = False
-        offboard = self.mode == Mode.OFFBOARD and self._offb is not None and not self._offb_timed_out
+        offb = self.offb
+        offboard = self.mode == Mode.OFFBOARD and offb.sp is not None and not offb.timed_out
         if not self.armed:
             sp.att_q_wxyz[0] = rot_to_quat_wxyz(self.rot[None])[0]
             sp.thrust_norm[0] = 0.0
@@ -584,19 +546,19 @@ class Autopilot:
         elif self.throwing:
             sp.vel_ned_mps[0] = 0.0
             sp.yaw_rad[0] = self._hold_yaw
-        elif offboard and isinstance(self._offb, TrajectorySetpoint):
-            o = self._offb
+        elif offboard and isinstance(offb.sp, TrajectorySetpoint):
+            o = offb.sp
             sp.pos_ned_m[0] = o.pos_ned_m
             sp.vel_ned_mps[0] = o.vel_ned_mps
             sp.acc_ned_mps2[0] = o.acc_ned_mps2
             if self._target_moves_on():
-                sp.pos_ned_m[0], sp.vel_ned_mps[0] = self._moved_on(o, max(0.0, self._now_s - self._offb_last_t))
+                sp.pos_ned_m[0], sp.vel_ned_mps[0] = offb.moved_on(o, max(0.0, self._now_s - offb.last_t))
             sp.yaw_rad[0] = o.yaw_rad
             sp.yaw_rate_radps[0] = o.yaw_rate_radps
             if not (math.isfinite(o.yaw_rad) or math.isfinite(o.yaw_rate_radps)):
                 sp.yaw_rad[0] = self._hold_yaw
-        elif offboard and isinstance(self._offb, AttitudeSetpoint):
-            att = self._offb
+        elif offboard and isinstance(offb.sp, AttitudeSetpoint):
+            att = offb.sp
             sp.thrust_norm[0] = self.behaviour.attitude_thrust(self, att)
             sp.body_rate_radps[0] = att.body_rate_radps
             if att.att_q_wxyz is None:
@@ -605,11 +567,12 @@ class Autopilot:
                 sp.att_q_wxyz[0] = rot_to_quat_wxyz(self.rot[None])[0]
             else:
                 sp.att_q_wxyz[0] = att.att_q_wxyz
-        elif self.mode == Mode.OFFBOARD and self._offb_timed_out and self._stop_pos is not None:
-            sp.pos_ned_m[0] = self._stop_pos  # GUID_TIMEOUT: the target where it stopped, at rest
+        elif self.mode == Mode.OFFBOARD and offb.timed_out and offb.stop_pos is not None:
+            sp.pos_ned_m[0] = offb.stop_pos  # GUID_TIMEOUT: the target where it stopped, at rest
             sp.yaw_rad[0] = self._hold_yaw
-        elif self.mode == Mode.OFFBOARD and self._offb_timed_out and self._stop_vel is not None:
-            sp.vel_ned_mps[0], sp.acc_ned_mps2[0] = self._braking()  # GUID_TIMEOUT: a velocity target zeroed
+        elif self.mode == Mode.OFFBOARD and offb.timed_out and offb.stop_vel is not None:
+            # GUID_TIMEOUT: a velocity target zeroed
+            sp.vel_ned_mps[0], sp.acc_ned_mps2[0] = offb.braking(self._now_s, self.knobs.loss)
             sp.yaw_rad[0] = self._hold_yaw
         elif self._descend_drift:
             sp.acc_ned_mps2[0, :2] = 0.0  # no horizontal control: level, drifting
