@@ -143,7 +143,7 @@ def _airborne_in_offboard(dialect: str = "px4", **params):
 
 
 def _last_setpoint_s(ap) -> float:
-    return ap._offb_last_t  # (when the autopilot took the last setpoint)
+    return ap.offb.last_t  # (when the autopilot took the last setpoint)
 
 
 def _texts(ap) -> list[str]:
