@@ -16,8 +16,8 @@ How: the vehicle link reports each message id it receives from its autopilot and
 read (`seen`); one task asks, one id at a time (a COMMAND_ACK names only the command, so
 two SET_MESSAGE_INTERVAL in flight could not be told apart), for that stream to stop. An id
 keeps arriving RE_ASK_AFTER_S after a stop was accepted (a ground station's
-REQUEST_DATA_STREAM on ArduPilot turns streams back on): it is asked again, at most
-MAX_ASKS times. At most MAX_IDS ids are handled: the work stays bounded whatever arrives
+REQUEST_DATA_STREAM on ArduPilot turns streams back on): it is asked again, up to
+MAX_ASKS requests in all. At most MAX_IDS ids are handled: the work stays bounded whatever arrives
 (unknown ids cannot be checked: a forged frame costs one command at most).
 """
 from __future__ import annotations
