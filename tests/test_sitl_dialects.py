@@ -37,7 +37,7 @@ PX4 = dialect_named("px4")
 ARDUPILOT = dialect_named("ardupilot")
 GUIDED, LOITER, LAND, BRAKE = 4, 5, 9, 17  # ArduCopter mode numbers
 VEL_MASK = 0xDC7  # SET_POSITION_TARGET_LOCAL_NED: velocity only, yaw and yaw rate ignored
-ACCEPTED, TEMPORARILY_REJECTED, DENIED = 0, 1, 2
+ACCEPTED, TEMPORARILY_REJECTED, DENIED, FAILED = 0, 1, 2, 4
 
 
 def _sitl(dialect: str, speed: float = 1.0, **spawn):
@@ -370,5 +370,9 @@ def test_command_int_520_and_message_interval_limits(sitl):
         assert c.command(2, 511, 32, 0).result == ACCEPTED  # back to the default (10 Hz)
         c.mav.command_long_send(2, 1, 510, 0, 32, 0, 0, 0, 0, 0, 0)
         assert c.wait("MESSAGE_INTERVAL", lambda m: m.message_id == 32, 3).interval_us == 100000
+        # a message it does not stream (HIGHRES_IMU): FAILED on both autopilots; ArduPilot says so
+        assert c.command(2, 511, 105, -1).result == FAILED
+        if sitl.cfg.dialect == "ardupilot":
+            assert c.wait("STATUSTEXT", lambda m: m.text == "No ap_message for mavlink id (105)", 3) is not None
     finally:
         c.close()

@@ -17,7 +17,9 @@ from companion.link.setpoints import Rejected, decode_attitude_target, decode_po
 from sim_bridge.sitl.autopilot import (
     ACCEPTED,
     DENIED,
+    FAILED,
     SEV_CRITICAL,
+    SEV_INFO,
     TEMPORARILY_REJECTED,
     UNSUPPORTED,
     Autopilot,
@@ -228,7 +230,12 @@ class MessageRouter:
             return DENIED
         msgid = int(msgid_f)
         if msgid not in STREAMS and msgid != HEARTBEAT:
-            return DENIED
+            # not a stream here: both autopilots answer FAILED (PX4 mavlink_receiver, ArduPilot
+            # GCS_Common set_message_interval), ArduPilot also tells its ground stations
+            ap = self.ctx.autopilots[k]
+            if ap.behaviour.says_unknown_interval_id:
+                ap.events.append((SEV_INFO, f"No ap_message for mavlink id ({msgid})"))
+            return FAILED
         if interval_us > 2**31 - 1:  # MESSAGE_INTERVAL carries an int32: refuse what it cannot report
             return DENIED
         if interval_us < 0:

@@ -38,6 +38,7 @@ class ArduPilotBehaviour(AutopilotBehaviour):
     after_takeoff_mode = Mode.OFFBOARD  # ArduCopter finishes its GUIDED take-off holding in GUIDED
     attitude_thrust_follows_tilt = True
     throw_uprights_first = True  # mode_throw.cpp: Throw_Uprighting before any position control
+    says_unknown_interval_id = True
 
     def own_specs(self, inner: InnerLoopConfig, sysid: int, hover_thrust: float) -> list[ParamSpec]:
         f, i, R = real_param, int_param, Role

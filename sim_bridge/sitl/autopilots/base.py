@@ -91,6 +91,10 @@ class AutopilotBehaviour(ABC):
     angle boost) until cos(tilt) > THROW_UPRIGHT_COS, and only then flies the recovery's zero
     velocity through its position loops (ArduCopter's Throw_Uprighting stage); else the
     position loops fly it from the release (PX4)."""
+    says_unknown_interval_id: ClassVar[bool] = False
+    """A SET_MESSAGE_INTERVAL for a message it does not stream is answered FAILED (PX4 and
+    ArduPilot alike) and also announced in a STATUSTEXT (ArduPilot: "No ap_message for
+    mavlink id (N)", GCS_Common.cpp)."""
     attitude_thrust_follows_tilt: ClassVar[bool] = False
     """The inner-loop thrust of an attitude setpoint depends on the tilt (angle boost, a
     climb rate): the setpoint is rebuilt every tick while one is flown."""
