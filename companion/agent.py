@@ -289,8 +289,6 @@ class Agent:
         """The integral on each vehicle's slot residual, the agent's own or driven into its
         autopilot's velocity integrator (companion.slot_hold; set_autopilot_loop)."""
         self._t_prev_s = math.nan
-        self._flags = np.zeros(n, np.uint8)
-        """(n,) the FLAG_* bits the last step published."""
         cfg = mission.cfg
         self._k = gains_vector(cfg.consensus)
         self._cos_tilt_max = math.cos(math.radians(cfg.phases.stable_tilt_deg))
@@ -527,38 +525,15 @@ class Agent:
         # After this tick's assembled flags: a vehicle that reaches its slot now counts now.
         self._agree_t_go(t_s, view, age)
         self._t_prev_s = t_s
-        self._flags = flags
         seq = book.plan_seq.copy()
-        published = self._published(own, flags)
+        published = SwarmStates(self.ids.copy(), np.asarray(own.stamp_s, float).copy(), own.pos_ned_m.copy(),
+                                own.vel_ned_mps.copy(), q.copy(), phase.copy(), flags, self.t_go_s.copy(), seq)
         bias = np.zeros((n, 3))
         bias[rows] = self.slot_hold.bias_accel(rows)
         return AgentOutput(sp, phase.copy(), self.assembled.copy(), self.t_go_s.copy(), valid, slot, published, seq,
                            self.handed_over.copy(), self.slot_hold.drive_ned_m.copy(),
                            np.where(settled_rows(phase, own.vel_ned_mps, cfg.phases.assembled_speed_mps),
                                     cfg.setpoint.acc_ff_hover_mps2, cfg.setpoint.acc_ff_max_mps2), bias)
-
-    def publish_between(self, t_s: float, own: OwnState) -> SwarmStates:
-        """What to publish on a swarm tick with no step (a companion that plans less often
-        than it publishes): own's newest measurement, with the phase, flags and transit start
-        of the last step; FLAG_OWN_VALID judged anew on this state, as step judges it.
-
-        Args:
-            t_s: mission time, s. own: n rows, as for step.
-        Returns:
-            n states, as AgentOutput.published.
-        """
-        n = len(self.ids)
-        valid, cos_tilt = np.empty(n, np.bool_), np.empty(n)
-        self.kernels.own_checks_rows(t_s, own.pos_ned_m, own.vel_ned_mps, own.att_q_wxyz,
-                                     np.asarray(own.stamp_s, float), self.mission.cfg.swarm.own_timeout_s, valid,
-                                     cos_tilt)
-        flags = np.where(valid, self._flags | FLAG_OWN_VALID, self._flags & ~np.uint8(FLAG_OWN_VALID)).astype(np.uint8)
-        return self._published(own, flags)
-
-    def _published(self, own: OwnState, flags: np.ndarray) -> SwarmStates:
-        return SwarmStates(self.ids.copy(), np.asarray(own.stamp_s, float).copy(), own.pos_ned_m.copy(),
-                           own.vel_ned_mps.copy(), own.att_q_wxyz.copy(), self.phase.copy(), flags,
-                           self.t_go_s.copy(), self.plans.plan_seq.copy())
 
     def _plan_times(self, t_s: float, groups: list[RefGroup]) -> tuple[np.ndarray, np.ndarray]:
         """What each row's plan says of time (and ABORT): when its centre comes to rest, when it

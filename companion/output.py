@@ -4,8 +4,8 @@
 same `OutputStage`, so the flight policy between the planner and the autopilot is the same
 lines in both (docs/agent.md, "The output stage"):
 
-1. **Extrapolation.** The planner runs on some ticks only (the agent: every plan_every-th,
-   5 Hz with the defaults); in between, a state plan (position and velocity given) is
+1. **Extrapolation.** The planner runs on some ticks only (the agent: every plan_every-th
+   and its publishing ticks); in between, a state plan (position and velocity given) is
    advanced along its acceleration to now: p + v dt + a dt^2 / 2, v + a dt.
 2. **Slot-hold drive** (acceleration output, companion.slot_hold): a state plan's position
    target is moved by the agent's drive d, so the autopilot's velocity integrator learns

@@ -568,32 +568,3 @@ def test_ground_takeoff_columns_are_routed_around(columns):
         assert closest > 1.0  # never within the separation of the column it will climb through
     else:
         assert closest < 0.6  # a point on the ground is no obstacle at 4 m: the path crosses the column
-
-
-def test_a_state_published_between_plans_is_the_newest_measurement_with_the_last_plan_s_decisions():
-    """A companion plans every --plan-every ticks and publishes at the swarm rate: between plans
-    it publishes its newest measured state with the phase, flags and transit start of its last
-    step, FLAG_OWN_VALID judged on the new state as step would judge it."""
-    m = _mission(1)
-    a = Agent(m, np.array([0]))
-    a.phase[:] = Phase.ASSEMBLE
-    slot = m.slot_ned_m(-1.0)[0]
-    out = a.step(3.0, _own(slot, [0, 0, 0], 3.0), SwarmView.unknown(1, 1))
-    assert out.published.flags[0] & FLAG_ASSEMBLED and out.published.flags[0] & FLAG_OWN_VALID
-    fresh = _own(slot + [0.3, -0.2, 0.1], [0.5, 0.0, -0.1], 3.1)
-    pub = a.publish_between(3.1, fresh)
-    assert pub.stamp_s[0] == 3.1 and pub.vehicle_id.tolist() == [0]
-    np.testing.assert_array_equal(pub.pos_ned_m, fresh.pos_ned_m)
-    np.testing.assert_array_equal(pub.vel_ned_mps, fresh.vel_ned_mps)
-    np.testing.assert_array_equal(pub.att_q_wxyz, fresh.att_q_wxyz)
-    assert pub.phase[0] == out.published.phase[0] == Phase.ASSEMBLE
-    assert pub.flags[0] == out.published.flags[0] and pub.t_go_s[0] == out.t_go_s[0] == pytest.approx(5.0)
-    assert pub.plan_seq is not None and pub.plan_seq[0] == 0
-    # an attitude lost since the plan: the state is published, and says it is not valid
-    lost = a.publish_between(3.2, _own(slot, [0, 0, 0], 3.2, q=[np.nan] * 4))
-    assert not lost.flags[0] & FLAG_OWN_VALID and lost.flags[0] & FLAG_ASSEMBLED
-    # a stale measurement (older than own_timeout_s) is not valid either
-    stale = a.publish_between(3.2 + m.cfg.swarm.own_timeout_s + 0.5, _own(slot, [0, 0, 0], 3.2))
-    assert not stale.flags[0] & FLAG_OWN_VALID
-    # and the agent's own decisions are not changed by publishing
-    assert a.phase[0] == Phase.ASSEMBLE and a.t_go_s[0] == pytest.approx(5.0)

@@ -338,9 +338,6 @@ def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
     assert modes[-1] == d.custom_mode(Mode.OFFBOARD)
     stats = json.loads((tmp_path / "agent.json").read_text())
     assert stats["phase"] == Phase.HOVER.name and stats["autopilot"]["dialect"] == dialect
-    # it plans at 5 Hz (--plan-every 10) and still publishes its state on every swarm tick (10 Hz of
-    # the 50 Hz ticks), a plan's or the newest measurement between plans (Agent.publish_between)
-    assert abs(stats["swarm"]["published"] - stats["ticks"] / 5) <= 2, (stats["swarm"], stats["ticks"])
     # The SITL streams ATTITUDE (10 Hz), GLOBAL_POSITION_INT, SYS_STATUS, GPS_RAW_INT, HOME_POSITION and
     # BATTERY_STATUS by default; the agent reads none of them (it asked for LOCAL_POSITION_NED,
     # ATTITUDE_QUATERNION, EXTENDED_SYS_STATE and SYSTEM_TIME, which it keeps).

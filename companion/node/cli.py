@@ -43,10 +43,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "runs here and SET_ATTITUDE_TARGET carries attitude and thrust (default acceleration)")
     p.add_argument("--rate", type=float, default=50.0,
                    help="setpoint rate, Hz, above 2 and up to 400 (default 50)")
-    p.add_argument("--plan-every", type=int, default=10,
-                   help="run the planner every N setpoint ticks, staggered per vehicle; in between the last plan "
-                        "is advanced along its acceleration, and the vehicle's state is still published at the "
-                        "swarm rate (default 10: 5 Hz at 50 Hz setpoints)")
+    p.add_argument("--plan-every", type=int, default=5,
+                   help="run the planner every N setpoint ticks (and on every swarm publication); in between "
+                        "the last plan is advanced along its acceleration (default 5: at 50 Hz setpoints and "
+                        "10 Hz neighbour states, the planner runs when new neighbour states can have come)")
     p.add_argument("--launch", choices=("carrier", "ground"), default=None,
                    help="carrier: the autopilot recovers the thrown vehicle; ground: arm and take off "
                         "(default: the mission's mission.launch)")

@@ -107,7 +107,7 @@ class NodeConfig:
     target_sysid: int | None = None
     output: Literal["acceleration", "attitude"] = "acceleration"
     rate_hz: float = 50.0
-    plan_every: int = 10
+    plan_every: int = 5
     """Run the planner (Agent.step) every this many setpoint ticks (and on every tick it
     publishes its state); in between the last plan's state is advanced along its
     acceleration (docs/companion.md). 5 at 50 Hz: the planner at the swarm rate, 10 Hz."""

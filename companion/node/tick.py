@@ -190,11 +190,10 @@ class TickPath:
         lp = lpn.values
         publish = swarm_due(unix_us, self.swarm_rate_hz, cfg.vehicle_id, self.period_us)
         k = tick_index(unix_us, self.period_us)
-        # Plans every plan_every-th tick (vehicle-staggered, as swarm_due), after this tick's
-        # setpoint has left: the planner's output is a trajectory for the next ticks, so planning
-        # adds nothing to the telemetry-to-setpoint latency. A publishing tick that does not plan
-        # publishes the newest measured state with the last plan's phase and flags.
-        plan_now = (k + cfg.vehicle_id) % cfg.plan_every == 0
+        # Plans on the ticks it publishes (vehicle-staggered, as swarm_due) and every plan_every-th,
+        # after this tick's setpoint has left: the planner's output is a trajectory for the next
+        # ticks, so planning adds nothing to the telemetry-to-setpoint latency.
+        plan_now = publish or (k + cfg.vehicle_id) % cfg.plan_every == 0
         if not self.planned:
             self._plan(t, lp, ms, publish)
             plan_now = False
@@ -217,9 +216,6 @@ class TickPath:
             c.last_send_wall = math.nan
         if plan_now:
             self._plan(t, lp, ms, publish)
-        elif publish and self.planned:
-            self.swarm.publish(self.agent.publish_between(t, self._own_state(t, lp, ms)))
-            self._relay(t)
         if self.sw_ep.pending:
             self.sw_ep.flush()
         if cfg.lockstep:  # after the setpoint and the published state: this tick is done
@@ -234,9 +230,18 @@ class TickPath:
             t: mission time, s. lp: LOCAL_POSITION_NED (x, y, z, vx, vy, vz), local NED, m and m/s.
             ms: its time_boot_ms. publish: this tick publishes the vehicle's state.
         """
+        v = self.vehicle
         self.swarm.poll()
-        own = self._own_state(t, lp, ms)
-        q = own.att_q_wxyz[0]
+        off = v.offset
+        pos = np.array([lp[0] + off[0], lp[1] + off[1], lp[2] + off[2]])
+        vel = np.array(lp[3:6], float)
+        att = v.att
+        q = np.array(att.values if att is not None and abs(att.time_boot_ms - ms) <= ATTITUDE_MAX_AGE_MS
+                     else [np.nan] * 4)
+        hb = v.hb
+        released = hb is not None and hb.armed and hb.landed_state not in NOT_RELEASED
+        own = OwnState(pos[None], vel[None], q[None], np.array([t]), np.array([released]),
+                       np.array([v.launch_ready]))
         t_step = time.perf_counter()
         out = self.agent.step(t, own, self.view)
         self.counters.step.add(time.perf_counter() - t_step)
@@ -266,21 +271,6 @@ class TickPath:
         self.output.set_plan(t, out.setpoint, np.isfinite(q).all(keepdims=True), out.drive_ned_m,
                              out.acc_ff_max_mps2, out.acc_bias_ned_mps2)
         self.planned = True
-
-    def _own_state(self, t: float, lp: tuple, ms: int) -> OwnState:
-        """This tick's own state for the Agent: mission frame, stamped t (s); the attitude only
-        if measured within ATTITUDE_MAX_AGE_MS of the position (else NaN)."""
-        v = self.vehicle
-        off = v.offset
-        pos = np.array([lp[0] + off[0], lp[1] + off[1], lp[2] + off[2]])
-        vel = np.array(lp[3:6], float)
-        att = v.att
-        q = np.array(att.values if att is not None and abs(att.time_boot_ms - ms) <= ATTITUDE_MAX_AGE_MS
-                     else [np.nan] * 4)
-        hb = v.hb
-        released = hb is not None and hb.armed and hb.landed_state not in NOT_RELEASED
-        return OwnState(pos[None], vel[None], q[None], np.array([t]), np.array([released]),
-                        np.array([v.launch_ready]))
 
     def _relay(self, t: float) -> None:
         """Pass the newest plan this vehicle holds on to its peers: on every publishing tick
