@@ -4,6 +4,10 @@
 - paper_40.json: wall time, real-time factor and CPU of the headless paper_40 run;
 - sitl.json: the MAVLink SITL alone at N = 40, 100, 250;
 - wire.json: the lean MAVLink codec against pymavlink (µs per message);
+- tick.json: the agent's own work per tick, warm on an idle machine (a real AgentNode's tick
+  path fed datagrams by hand: a non-plan tick and a plan tick, thread CPU), to set against
+  the fleet's per-agent CPU (bench/bench_tick.py; where each part goes inside a real fleet:
+  `python -m bench.agent_parts CONFIG --out DIR`, not part of `make bench`);
 - fleet.json: `swarmdrop run` (SITL + one agent process per vehicle) on paper_40 in real
   time, the largest fleet that keeps real time, one agent's start-up time and PSS, and the
   machine's floor under an agent's CPU (a bare asyncio process woken 50 times a second);
@@ -72,8 +76,8 @@ def load_scenario_small(cfg):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parts = set(sys.argv[1:] if argv is None else argv) or {"physics", "paper_40", "sitl", "wire", "fleet", "signing", "sweep",
-                                                            "console"}
+    parts = set(sys.argv[1:] if argv is None else argv) or {"physics", "paper_40", "sitl", "wire", "tick", "fleet", "signing",
+                                                            "sweep", "console"}
     if "physics" in parts:
         from bench.bench_physics import run as run_physics
 
@@ -88,6 +92,10 @@ def main(argv: list[str] | None = None) -> int:
         from bench.bench_wire import run as run_wire
 
         _write("wire", run_wire())
+    if "tick" in parts:
+        from bench.bench_tick import run as run_tick
+
+        _write("tick", run_tick())
     if "fleet" in parts:
         from bench.bench_fleet import run as run_fleet
 
