@@ -104,7 +104,8 @@ def summarize(out_dir: Path) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.agent_parts", description=__doc__.split("\n\n")[0])
+    p = argparse.ArgumentParser(prog="python -m bench.agent_parts", description=__doc__.split("\n\n")[0],
+                                epilog="Any other option goes to `swarmdrop run` (e.g. --dialect ardupilot --lockstep).")
     p.add_argument("config", type=Path, help="the fleet config (e.g. configs/paper_40.yaml)")
     p.add_argument("--out", type=Path, required=True, help="a new or empty directory for the run and the counts")
     a, extra = p.parse_known_args(argv)  # the rest goes to `swarmdrop run` (e.g. --dialect ardupilot)
@@ -117,7 +118,11 @@ def main(argv: list[str] | None = None) -> int:
     cmd = [sys.executable, "-m", "swarmdrop.cli", "run", str(a.config), "--out", str(out / "run"), "--overwrite",
            "--no-figures", "--quiet", "--agent-python", str(launcher), *extra]
     rc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, OUT_ENV: str(counts)}).returncode
-    doc = summarize(counts)
+    try:
+        doc = summarize(counts)
+    except FileNotFoundError as err:
+        print(f"bench.agent_parts: swarmdrop run exited {rc}; {err}", file=sys.stderr)
+        return rc or 1
     (out / "agent_parts.json").write_text(json.dumps(doc, indent=1))
     print(f"{doc['agents']} agents, {doc['cpu_ms_per_s']:.2f} ms of CPU a second each since attach")
     for k, v in doc["parts"].items():
