@@ -18,8 +18,9 @@ from pathlib import Path
 
 import numpy as np
 
+from companion.link.dialects import Mode, dialect_named
 from companion.link.endpoints import MavEndpoint, UdpLink
-from companion.link.enums import MavAutopilot, MavLandedState, MsgId
+from companion.link.enums import MavAutopilot, MavLandedState, MavModeFlag, MavState, MavType, MsgId
 from companion.link.msgdef import swarmdrop as md
 from companion.link.wire import Codec
 from companion.node.config import NodeConfig, load_mission_file
@@ -28,10 +29,6 @@ from companion.node.runner import AgentNode
 ROOT = Path(__file__).resolve().parents[1]
 VEHICLE = 7
 EPOCH_US = 1_767_225_600_000_000
-PX4_OFFBOARD = 393216
-"""PX4 custom_mode of OFFBOARD (main mode 6 << 16)."""
-ARMED_CUSTOM = 129
-"""base_mode: MAV_MODE_FLAG_SAFETY_ARMED | MAV_MODE_FLAG_CUSTOM_MODE_ENABLED."""
 
 
 def _free_port() -> int:
@@ -52,12 +49,13 @@ async def _measure(ticks: int) -> dict:
     lpn, att = codec.builder(MsgId.LOCAL_POSITION_NED), codec.builder(MsgId.ATTITUDE_QUATERNION)
     hb, ess, st = codec.builder(MsgId.HEARTBEAT), codec.builder(MsgId.EXTENDED_SYS_STATE), \
         codec.builder(MsgId.SWARMDROP_STATE)
-    heartbeat = hb(type=2, autopilot=int(MavAutopilot.MAV_AUTOPILOT_PX4), base_mode=ARMED_CUSTOM,
-                   custom_mode=PX4_OFFBOARD, system_status=4, mavlink_version=3)
+    heartbeat = hb(type=int(MavType.MAV_TYPE_QUADROTOR), autopilot=int(MavAutopilot.MAV_AUTOPILOT_PX4),
+                   base_mode=int(MavModeFlag.MAV_MODE_FLAG_SAFETY_ARMED | MavModeFlag.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED),
+                   custom_mode=dialect_named("px4").custom_mode(Mode.OFFBOARD),
+                   system_status=int(MavState.MAV_STATE_ACTIVE), mavlink_version=3)
     m = node.mission
     slot = m.offsets_ned_m + np.asarray(m.cfg.waypoints_ned_m[0])
     try:
-        node._loop = asyncio.get_running_loop()
         # What set-up would have learnt: the autopilot (HEARTBEAT, in the air), its clock, the epoch.
         ap.queue_fields(MsgId.EXTENDED_SYS_STATE, ess(vtol_state=0,
                                                       landed_state=int(MavLandedState.MAV_LANDED_STATE_IN_AIR)))
@@ -91,11 +89,11 @@ async def _measure(ticks: int) -> dict:
                             vehicle_id=j, plan_seq=0), ("127.0.0.1", sw_port), sysid=j + 1)
                 radio.flush()
             time.sleep(0.0005)  # (the datagrams' way through the loopback: the agent reads what is there)
-            planned_before = node.agent._t_prev_s
+            plans_before = node.tick.counters.step.n  # (one count per Agent.step)
             t0 = time.thread_time_ns()
             node.tick.on_autopilot()
             dt_us = (time.thread_time_ns() - t0) / 1e3
-            (plan_us if node.agent._t_prev_s != planned_before else tick_us).append(dt_us)
+            (plan_us if node.tick.counters.step.n != plans_before else tick_us).append(dt_us)
             ap.link.recv()  # what the agent sent: read and dropped
             radio.link.recv()
         c = node.tick.counters
@@ -105,8 +103,7 @@ async def _measure(ticks: int) -> dict:
         for ep in (ap, radio, node.ap_ep, node.sw_ep):
             ep.close()
     tick, plan = np.array(tick_us[50:]), np.array(plan_us[10:])  # (warm: the first second left out)
-    per_s = 50.0 * (len(tick) / (len(tick) + len(plan))) * float(np.mean(tick)) + \
-        50.0 * (len(plan) / (len(tick) + len(plan))) * float(np.mean(plan))
+    per_s = 50.0 * float(tick.sum() + plan.sum()) / (len(tick) + len(plan))  # µs of CPU a second at 50 Hz
     return {
         "vehicle": VEHICLE, "phase": node.tick.phase.name, "neighbours": m.n - 1,
         "tick_us": {"median": float(np.median(tick)), "mean": float(np.mean(tick)), "n": len(tick)},
