@@ -18,6 +18,7 @@ import atexit
 import json
 import os
 import runpy
+import signal
 import stat
 import subprocess
 import sys
@@ -117,7 +118,12 @@ def main(argv: list[str] | None = None) -> int:
     launcher.chmod(launcher.stat().st_mode | stat.S_IXUSR)
     cmd = [sys.executable, "-m", "swarmdrop.cli", "run", str(a.config), "--out", str(out / "run"), "--overwrite",
            "--no-figures", "--quiet", "--agent-python", str(launcher), *extra]
-    rc = subprocess.run(cmd, cwd=ROOT, env={**os.environ, OUT_ENV: str(counts)}).returncode
+    fleet = subprocess.Popen(cmd, cwd=ROOT, env={**os.environ, OUT_ENV: str(counts)})
+    try:
+        rc = fleet.wait()
+    except KeyboardInterrupt:  # Ctrl-C: the harness stops its SITL and agents (they write their counts)
+        fleet.send_signal(signal.SIGINT)
+        rc = fleet.wait()
     try:
         doc = summarize(counts)
     except FileNotFoundError as err:
