@@ -16,7 +16,7 @@ import pytest
 import yaml
 
 os.environ.setdefault("MAVLINK20", "1")
-from lean_agent import lean_agent_cmd  # noqa: E402
+from lean_agent import EXTRAS_ONLY, lean_agent_cmd, lean_cmd  # noqa: E402
 from pymavlink import mavutil  # noqa: E402
 
 from companion.agent import Phase  # noqa: E402
@@ -96,6 +96,42 @@ def test_bad_arguments_or_mission_exit_2_with_a_message(case, tmp_path):
     proc, _ = run_agent(*args)
     assert proc.returncode == 2, (proc.stdout, proc.stderr)
     assert expected in proc.stderr, proc.stderr
+
+
+@pytest.mark.timeout(60)
+def test_uvloop_asked_for_where_it_cannot_be_imported_exits_2_naming_the_way_out(tmp_path):
+    cmd = lean_cmd("agent", "--vehicle-id", "0", "--mission", str(SMALL6), "--autopilot",
+                   f"udpin://127.0.0.1:{free_port()}", "--event-loop", "uvloop",
+                   blocked=(*EXTRAS_ONLY, "sim_bridge", "uvloop"))
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 2, (proc.stdout, proc.stderr)
+    assert "--event-loop uvloop: uvloop cannot be imported" in proc.stderr
+    assert "--event-loop asyncio" in proc.stderr
+
+
+def test_event_loop_choice():
+    import asyncio
+
+    import uvloop
+
+    from companion.config import ConfigError
+    from companion.node.cli import event_loop_factory
+
+    factory, name = event_loop_factory("auto")  # (uvloop is in the base install)
+    assert factory is uvloop.new_event_loop and name == f"uvloop {uvloop.__version__}"
+    assert event_loop_factory("uvloop")[0] is uvloop.new_event_loop
+    factory, name = event_loop_factory("asyncio")
+    assert factory is None and name.startswith("asyncio")
+    with asyncio.Runner(loop_factory=event_loop_factory("auto")[0]) as r:  # what the agent flies on
+        assert r.run(_loop_type()) is uvloop.Loop
+    with pytest.raises(ConfigError, match="expected one of auto, uvloop, asyncio"):
+        event_loop_factory("trio")
+
+
+async def _loop_type() -> type:
+    import asyncio
+
+    return type(asyncio.get_running_loop())
 
 
 # ---------------------------------------------------------------------------- b. no autopilot -> 3
@@ -282,9 +318,10 @@ def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
                   "--launch", "ground", "--lockstep", "--setup-timeout", "20", "--log-file", str(log),
                   "--set-loss-action", "hold",  # the SITL's PX4 boots with COM_OBL_RC_ACT 0 (drifts): refused
                   "--no-stderr-log", "--stats", str(tmp_path / "agent.json"),
-                  # PX4: the link is the agent's alone (the streams it does not read are stopped);
-                  # ArduPilot: the default (streams left alone)
-                  *(["--stop-unread-streams"] if dialect == "px4" else [])),
+                  # PX4: the link is the agent's alone (the streams it does not read are stopped), on
+                  # the default event loop (uvloop); ArduPilot: the default streams (left alone), on
+                  # the standard library's loop
+                  *(["--stop-unread-streams"] if dialect == "px4" else ["--event-loop", "asyncio"])),
         cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
     try:
         _wait_for(lambda: log.exists() and "-> HOVER" in log.read_text(), 90, "HOVER", agent, log)
@@ -338,6 +375,8 @@ def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
     assert modes[-1] == d.custom_mode(Mode.OFFBOARD)
     stats = json.loads((tmp_path / "agent.json").read_text())
     assert stats["phase"] == Phase.HOVER.name and stats["autopilot"]["dialect"] == dialect
+    assert stats["event_loop"].split()[0] == ("uvloop" if dialect == "px4" else "asyncio")
+    assert f"event loop: {stats['event_loop']}" in text
     # The SITL streams ATTITUDE (10 Hz), GLOBAL_POSITION_INT, SYS_STATUS, GPS_RAW_INT, HOME_POSITION and
     # BATTERY_STATUS by default; the agent reads none of them (it asked for LOCAL_POSITION_NED,
     # ATTITUDE_QUATERNION, EXTENDED_SYS_STATE and SYSTEM_TIME, which it keeps).

@@ -48,7 +48,7 @@ def test_the_base_install_is_what_the_agent_imports_and_nothing_heavy():
     base = {_dist(r) for r in PYPROJECT["project"]["dependencies"]}
     used = {IMPORT_TO_DIST.get(n, n) for n in _third_party_imports(ROOT / "companion")}
     assert used <= base, f"companion/ imports {sorted(used - base)}, which `pip install swarmdrop` does not bring"
-    assert base == {"numpy", "pyyaml", "pydantic", "fastcrc", "pymap3d"}
+    assert base == {"numpy", "pyyaml", "pydantic", "fastcrc", "pymap3d", "uvloop"}
     assert not base & {"scipy", "numba", "matplotlib", "tqdm", "pymavlink", "aiohttp", "dask"}
 
 

@@ -75,6 +75,8 @@ class AgentNode:
         self.start_cpu = time.process_time()
         self.startup_s: float | None = None
         """From process start to a constructed node (imports, mission, sockets), s (the CLI sets it)."""
+        self.event_loop: str | None = None
+        """The event loop run() flies on, name and version (the CLI sets it: --event-loop)."""
         self.setup = Setup(cfg, self.vehicle, self.swarm, self.start_wall)
         self.stats_failures = 0
         """Statistics writes that failed in a row (write_stats)."""

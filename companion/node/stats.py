@@ -401,6 +401,8 @@ class AgentStats:
     wall_s: float = math.nan
     setup_s: float = math.nan
     startup_s: float | None = None
+    event_loop: str | None = None
+    """The event loop the agent flew on, name and version (--event-loop); None: not said."""
     left_offboard: int = 0
     """Times the autopilot left offboard/GUIDED after it was engaged (companion.node.offboard)."""
     autopilot: AutopilotLinkStats = field(default_factory=AutopilotLinkStats)
@@ -419,7 +421,7 @@ class AgentStats:
             "agent_step_ms": self.agent_step_ms.to_json() if self.agent_step_ms is not None else {},
             "deadline_misses": self.deadline_misses, "setpoint_intervals": self.setpoint_intervals,
             "cpu_s": self.cpu_s, "wall_s": self.wall_s, "setup_s": self.setup_s, "startup_s": self.startup_s,
-            "left_offboard": self.left_offboard,
+            "event_loop": self.event_loop, "left_offboard": self.left_offboard,
             "autopilot": self.autopilot.to_json(),
             "swarm": self.swarm.to_json(),
             "identity": self.identity.to_json(),
@@ -448,7 +450,7 @@ class AgentStats:
             deadline_misses=_num(d, "deadline_misses", int, 0), setpoint_intervals=_num(d, "setpoint_intervals", int, 0),
             cpu_s=_num(d, "cpu_s", float, math.nan), wall_s=_num(d, "wall_s", float, math.nan),
             setup_s=_num(d, "setup_s", float, math.nan), startup_s=_opt_float(d, "startup_s"),
-            left_offboard=_num(d, "left_offboard", int, 0),
+            event_loop=_opt_str(d, "event_loop"), left_offboard=_num(d, "left_offboard", int, 0),
             autopilot=AutopilotLinkStats.from_json(_section(d, "autopilot")),
             swarm=SwarmLinkStats.from_json(_section(d, "swarm")),
             identity=IdentityStats.from_json(_section(d, "identity")),
@@ -496,7 +498,8 @@ def collect(node: AgentNode) -> AgentStats:
         unsendable_setpoints=c.unsendable, latency_ms=latency, latency_hist=hist, agent_step_ms=step,
         deadline_misses=c.deadline_misses, setpoint_intervals=c.intervals,
         cpu_s=time.process_time() - node.start_cpu, wall_s=time.monotonic() - node.start_wall,
-        setup_s=node.setup.ready_wall_s, startup_s=node.startup_s, left_offboard=node.offboard.left,
+        setup_s=node.setup.ready_wall_s, startup_s=node.startup_s, event_loop=node.event_loop,
+        left_offboard=node.offboard.left,
         autopilot=AutopilotLinkStats(
             dialect=v.dialect.name if v.dialect else None, bad_frames=ap_ep.bad_frames,
             unknown_messages=ap_ep.unknown, foreign=v.foreign, dropped_nonfinite=v.dropped_nonfinite,
