@@ -112,8 +112,7 @@ def test_uvloop_asked_for_where_it_cannot_be_imported_exits_2_naming_the_way_out
 def test_event_loop_choice():
     import asyncio
 
-    import uvloop
-
+    uvloop = pytest.importorskip("uvloop")  # (in the base install where pyproject's marker brings it)
     from companion.config import ConfigError
     from companion.node.cli import event_loop_factory
 
@@ -132,6 +131,18 @@ async def _loop_type() -> type:
     import asyncio
 
     return type(asyncio.get_running_loop())
+
+
+@pytest.mark.timeout(60)
+def test_auto_event_loop_falls_back_to_asyncio_where_uvloop_cannot_be_imported(tmp_path):
+    stats = tmp_path / "stats.json"
+    cmd = lean_cmd("agent", "--vehicle-id", "0", "--mission", str(SMALL6), "--autopilot",
+                   f"udpin://127.0.0.1:{free_port()}", "--setup-timeout", "1", "--stats", str(stats),
+                   blocked=(*EXTRAS_ONLY, "sim_bridge", "uvloop"))
+    proc = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True, timeout=30)
+    assert proc.returncode == 3, (proc.stdout, proc.stderr)  # (no autopilot there: it got as far as set-up)
+    assert "event loop: asyncio (Python " in proc.stderr
+    assert json.loads(stats.read_text())["event_loop"].startswith("asyncio")
 
 
 # ---------------------------------------------------------------------------- b. no autopilot -> 3

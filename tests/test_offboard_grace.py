@@ -118,7 +118,7 @@ async def _engage_px4_order(ap: ScriptedAutopilot, ag: Agent) -> float:
         ag.now += 0.02
         if k == 10:
             ap.heartbeat(Mode.HOLD)
-            await ag.pump(lambda: ag.v.hb_loop_time > 0 and ag.off._judged < ag.v.hb_loop_time)
+            await ag.pump(lambda: ag.off._judged < ag.v.hb_seq)
         await ag.tick()
         assert ag.off.state is OffboardState.CONFIRMING and ag.off.left == 0
     ap.heartbeat(Mode.OFFBOARD)
@@ -137,20 +137,20 @@ def test_ack_before_the_heartbeat_is_not_an_exit_and_a_real_exit_counts_once(dia
             await _engage_px4_order(ap, ag)
             for _ in range(3):  # more HEARTBEATs in offboard, ticks between them: still engaged
                 ap.heartbeat(Mode.OFFBOARD)
-                await ag.pump(lambda: ag.off._judged < ag.v.hb_loop_time)
+                await ag.pump(lambda: ag.off._judged < ag.v.hb_seq)
                 for _ in range(5):
                     ag.now += 0.2
                     await ag.tick()
                 assert ag.off.state is OffboardState.ENGAGED and ag.off.left == 0
             ap.heartbeat(Mode.HOLD)  # its failsafe (or a pilot) took the vehicle out: a real exit
-            await ag.pump(lambda: ag.off._judged < ag.v.hb_loop_time)
+            await ag.pump(lambda: ag.off._judged < ag.v.hb_seq)
             await ag.tick()
             assert ag.off.state is OffboardState.LOST and ag.off.left == 1
             for _ in range(10):  # the same HEARTBEAT on later ticks is not a second exit, nor is asking again
                 ag.now += 0.02
                 await ag.tick()
             ap.heartbeat(Mode.HOLD)
-            await ag.pump(lambda: ag.off._judged < ag.v.hb_loop_time)
+            await ag.pump(lambda: ag.off._judged < ag.v.hb_seq)
             await ag.tick()
             assert ag.off.state is OffboardState.LOST and ag.off.left == 1
             assert not [m for m, _ in ap.ep.poll() if m.get_type() == "COMMAND_LONG"]  # never switched back
@@ -176,7 +176,7 @@ def test_an_accepted_switch_its_heartbeat_never_shows_is_asked_again_not_counted
             await ag.tick()
             assert ag.off.state is OffboardState.CONFIRMING
             ap.heartbeat(Mode.HOLD)
-            await ag.pump(lambda: ag.off._judged < ag.v.hb_loop_time)
+            await ag.pump(lambda: ag.off._judged < ag.v.hb_seq)
             ag.now += 0.02  # past it, and the HEARTBEAT still shows Hold: ask again
             await ag.tick()
             assert ag.off.state is OffboardState.REQUESTING and ag.off.left == 0
@@ -196,3 +196,31 @@ def test_the_grace_outlasts_two_heartbeat_periods():
     that one is lost, both come within the grace."""
     assert OFFBOARD_CONFIRM_S > 2 * 1.0
 
+
+
+@pytest.mark.parametrize("dialect", ["px4", "ardupilot"])
+def test_heartbeats_in_one_tick_of_the_loop_clock_are_each_judged(dialect):
+    """uvloop's loop clock counts whole milliseconds: two HEARTBEATs taken within one (a
+    link that delayed them and delivers them together) must still be judged one by one."""
+    async def main() -> None:
+        ap = ScriptedAutopilot(dialect)
+        ag = Agent(ap)
+        try:
+            await _engage_px4_order(ap, ag)
+            loop = asyncio.get_running_loop()
+            frozen = loop.time()
+            loop.time = lambda: frozen  # type: ignore[method-assign]  # (the loop's clock stands still)
+            ap.heartbeat(Mode.OFFBOARD)
+            await ag.pump(lambda: ag.off._judged < ag.v.hb_seq)
+            await ag.tick()
+            assert ag.off.state is OffboardState.ENGAGED
+            ap.heartbeat(Mode.HOLD)  # a real exit, stamped with the same loop time
+            await ag.pump(lambda: ag.off._judged < ag.v.hb_seq)
+            assert ag.v.hb_loop_time == frozen
+            await ag.tick()
+            assert ag.off.state is OffboardState.LOST and ag.off.left == 1
+        finally:
+            ag.close()
+            ap.close()
+
+    asyncio.run(main())

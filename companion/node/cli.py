@@ -105,7 +105,7 @@ def event_loop_factory(choice: str) -> tuple[Callable[[], asyncio.AbstractEventL
 
     uvloop runs the loop's own work in C: the agent is woken 50-60 times a second (each
     control tick's telemetry, the supervisor, the streams), and the standard loop's Python
-    turn on each wake-up was about 7 % of a fleet agent's CPU (README, "Performance"). The
+    turn on each wake-up was 7-16 % of a fleet agent's CPU (README, "Performance"). The
     agent's own code is the same on either: reader callbacks, call_later, tasks.
 
     Args:

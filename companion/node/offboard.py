@@ -79,8 +79,8 @@ class Offboard:
         """Times the autopilot left offboard after its HEARTBEAT had shown it (stats: left_offboard)."""
         self.accepted_at = math.nan
         """clock() when the last request was accepted (NaN: none pending confirmation)."""
-        self._judged = -math.inf
-        """hb_loop_time of the newest HEARTBEAT already judged."""
+        self._judged = 0
+        """hb_seq of the newest HEARTBEAT already judged."""
 
     def ensure(self) -> None:
         """Called on every tick that sent a formation setpoint: judge a HEARTBEAT that is new
@@ -92,8 +92,8 @@ class Offboard:
         """
         v = self.vehicle
         hb = v.hb
-        if hb is not None and v.hb_loop_time > self._judged:
-            self._judged = v.hb_loop_time
+        if hb is not None and v.hb_seq > self._judged:
+            self._judged = v.hb_seq
             if v.ap.mode_of(hb.custom_mode) == Mode.OFFBOARD:
                 if self.state is not OffboardState.ENGAGED:
                     self._engaged()

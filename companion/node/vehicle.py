@@ -95,6 +95,9 @@ class VehicleLink:
         self.dialect: AutopilotDialect | None = None
         self.hb: HeartbeatState | None = None
         self.hb_loop_time = -math.inf
+        self.hb_seq = 0
+        """HEARTBEATs of our autopilot taken so far (each new one has a higher number, even
+        two within one tick of the loop's clock, which is milliseconds on uvloop)."""
         self.landed_state = MavLandedState.MAV_LANDED_STATE_UNDEFINED
         self.lpn: Sample | None = None
         self.att: Sample | None = None
@@ -194,6 +197,7 @@ class VehicleLink:
         self.hb = HeartbeatState(msg.custom_mode, msg.base_mode, msg.system_status, self.landed_state)
         self.launch_ready = self.dialect.launch_ready(self.hb)
         self.hb_loop_time = asyncio.get_running_loop().time()
+        self.hb_seq += 1
 
     @property
     def ap(self) -> AutopilotDialect:
