@@ -4,9 +4,11 @@
 - paper_40.json: wall time, real-time factor and CPU of the headless paper_40 run;
 - sitl.json: the MAVLink SITL alone at N = 40, 100, 250;
 - wire.json: the lean MAVLink codec against pymavlink (µs per message);
-- tick.json: the agent's own work per tick, warm on an idle machine (a real AgentNode's tick
-  path fed datagrams by hand: a non-plan tick and a plan tick, thread CPU), to set against
-  the fleet's per-agent CPU (bench/bench_tick.py; where each part goes inside a real fleet:
+- tick.json: the agent's own work per tick (a real AgentNode's tick path fed datagrams by hand:
+  a non-plan tick and a plan tick, thread CPU), warm on an idle machine and cold (32 MB of
+  memory swept before each tick, as the fleet's other processes do between two ticks of one
+  agent: closer to the in-fleet figure, in seconds), to set against the fleet's per-agent
+  CPU (bench/bench_tick.py; where each part goes inside a real fleet:
   `python -m bench.agent_parts CONFIG --out DIR`, not part of `make bench`);
 - fleet.json: `swarmdrop run` (SITL + one agent process per vehicle) on paper_40 in real
   time, the largest fleet that keeps real time, one agent's start-up time and PSS, and the
