@@ -111,7 +111,8 @@ class AgentNode:
         next_stats = self.loop.time() + STATS_PERIOD_S
         while not self._stop.is_set():
             v.heartbeat()
-            self.ap_ep.flush()
+            if not v.tick_aligned:  # (lockstep: it goes with the next tick)
+                self.ap_ep.flush()
             gc.collect(1)  # between ticks (see _attach)
             if self.loop.time() - v.hb_loop_time > self.cfg.heartbeat_timeout_s:
                 raise NodeFailure(ExitCode.LINK_LOST,

@@ -125,6 +125,7 @@ class TickPath:
             self.vehicle.send(MsgId.SWARMDROP_TICK, self._tick_marker(time_usec=0))
         self.vehicle.heartbeat()
         self.ap_ep.flush()
+        self.vehicle.tick_aligned = self.cfg.lockstep  # (VehicleLink.tick_aligned: from now on, sends go with ticks)
         self.flying = True
 
     # ------------------------------------------------------------------ I/O callbacks
@@ -139,7 +140,7 @@ class TickPath:
             v.handle_raw(*r)
         if v.new_control:
             self._maybe_tick(t_recv)
-        if self.ap_ep.pending:
+        if self.ap_ep.pending and not v.tick_aligned:
             self.ap_ep.flush()
 
     def on_swarm(self) -> None:
@@ -221,6 +222,7 @@ class TickPath:
         if cfg.lockstep:  # after the setpoint and the published state: this tick is done
             v.send(MsgId.SWARMDROP_TICK, self._tick_marker(time_usec=unix_us))
             self.ap_ep.flush()
+            v.tick_done()  # (answers reach their waiters now: what they send next goes with the next tick)
 
     def _plan(self, t: float, lp: tuple, ms: int, publish: bool) -> None:
         """Run the Agent (the planner) on this tick's inputs; its setpoint is the output stage's plan.

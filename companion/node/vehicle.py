@@ -59,6 +59,9 @@ PARAM_INDEX_BY_NAME = -1
 
 STOP_INTERVAL_US = -1.0
 """MAV_CMD_SET_MESSAGE_INTERVAL's param2 that stops a stream (MESSAGE_INTERVAL: -1 = disabled)."""
+TICK_WAIT_S = 60.0
+"""Lockstep (VehicleLink.tick_aligned): how long a queued command may wait for the tick that
+sends it, wall s (a fleet's clock starts once every agent is up: seconds for 40 processes)."""
 
 
 class CommandError(RuntimeError):
@@ -118,6 +121,18 @@ class VehicleLink:
         self._msg_waiters: dict[int, list[asyncio.Future]] = {}
         self.new_control = False
         """Set when a LOCAL_POSITION_NED newer than the last one arrived."""
+        self.tick_aligned = False
+        """Lockstep, once the ticks run (TickPath.attach): what this link queues leaves only
+        with a tick's messages, before its SWARMDROP_TICK, and the answers to commands and
+        requests reach their waiters only at the end of a tick (release_replies). A command
+        then reaches the SITL, and the one after it follows its answer, at the same simulated
+        tick in every run, however the processes happen to be scheduled (sent between ticks,
+        it landed in whichever tick the SITL was at: a ground launch one tick late, now and
+        then). Off (the default): sent and answered at once."""
+        self._replies: list[tuple[asyncio.Future, object]] = []
+        """Answers held for the end of the tick (tick_aligned)."""
+        self._tick_end: asyncio.Future | None = None
+        """Resolved at the end of the next tick (tick_aligned: a queued command has left)."""
         self.unread: Callable[[int], None] | None = None
         """Told the id of each message from our autopilot that the agent does not read
         (companion.node.streams: --stop-unread-streams); None: nobody asks."""
@@ -171,8 +186,40 @@ class VehicleLink:
             if fn is not None:
                 fn(msg)
         for fut in self._msg_waiters.pop(msgid, []):
-            if not fut.done():
-                fut.set_result(msg)
+            self._answer(fut, msg)
+
+    def _answer(self, fut: asyncio.Future, value) -> None:
+        """Hand a waiter its answer: now, or at the end of the tick (tick_aligned)."""
+        if self.tick_aligned:
+            self._replies.append((fut, value))
+        elif not fut.done():
+            fut.set_result(value)
+
+    def tick_done(self) -> None:
+        """The end of a tick, its messages sent (tick_aligned): hand the answers that came
+        before it to their waiters, which then go on after this tick whichever read brought
+        the answer, and tell those waiting for a tick that theirs has gone."""
+        if self._replies:
+            replies, self._replies = self._replies, []
+            for fut, value in replies:
+                if not fut.done():
+                    fut.set_result(value)
+        end, self._tick_end = self._tick_end, None
+        if end is not None and not end.done():
+            end.set_result(None)
+
+    async def _sent_with_tick(self, what: str) -> None:
+        """Wait for the end of the next tick, which sends what is queued (tick_aligned).
+
+        Raises:
+            CommandError: no tick for TICK_WAIT_S (the lockstep clock never started).
+        """
+        if self._tick_end is None:
+            self._tick_end = asyncio.get_running_loop().create_future()
+        try:
+            await asyncio.wait_for(asyncio.shield(self._tick_end), TICK_WAIT_S)
+        except asyncio.TimeoutError:
+            raise CommandError(f"{what}: not sent, no lockstep tick for {TICK_WAIT_S:g} s") from None
 
     def _other_autopilot(self, sysid: int) -> None:
         """An autopilot that is not ours spoke on this link (a router, or the wrong port)."""
@@ -239,7 +286,7 @@ class VehicleLink:
     def _on_command_ack(self, msg) -> None:
         fut = self._acks.get(msg.command)
         if fut is not None and not fut.done() and msg.result != MavResult.MAV_RESULT_IN_PROGRESS:
-            fut.set_result(msg.result)
+            self._answer(fut, msg.result)
 
     def _on_param_value(self, msg) -> None:
         name = param_name(msg.param_id)
@@ -251,8 +298,7 @@ class VehicleLink:
             return
         self._param_types[name] = msg.param_type
         for fut in self._param_waiters.pop(name, []):
-            if not fut.done():
-                fut.set_result((value, msg.param_type))
+            self._answer(fut, (value, msg.param_type))
 
     def _on_statustext(self, msg) -> None:
         log.info("autopilot: %s", msg.text)
@@ -280,7 +326,10 @@ class VehicleLink:
     async def _exchange(self, send, waiter: asyncio.Future, what: str, timeout_s: float, retries: int):
         for attempt in range(retries):
             send()
-            self.ep.flush()
+            if self.tick_aligned:  # it leaves with the next tick's messages: the answer's wait starts then
+                await self._sent_with_tick(what)
+            else:
+                self.ep.flush()
             try:
                 return await asyncio.wait_for(asyncio.shield(waiter), timeout_s)
             except asyncio.TimeoutError:

@@ -1,0 +1,152 @@
+"""Lockstep commands go with ticks (companion.node.vehicle.VehicleLink.tick_aligned).
+
+In lockstep the SITL's clock waits for each companion's SWARMDROP_TICK. A command sent
+between two ticks landed in whichever tick the SITL happened to be at, and the command
+after it followed its answer one tick earlier or later depending on whether the answer
+and the next telemetry came in one read or two: a ground launch was a tick late now and
+then. Tick-aligned, a command leaves with a tick's messages and its answer reaches the
+waiter at the end of a tick. These tests play that order on a real UDP link between a
+scripted autopilot and the agent's VehicleLink, the "tick" done by hand.
+"""
+from __future__ import annotations
+
+import asyncio
+import select
+
+import pytest
+
+from companion.link.endpoints import MavEndpoint, UdpLink
+from companion.link.enums import MavCmd, MavResult, MsgId
+from companion.link.msgdef import swarmdrop as md
+from companion.link.wire import Codec
+from companion.mission import GeodeticOrigin
+from companion.node import vehicle as vehicle_mod
+from companion.node.vehicle import CommandError, VehicleLink
+
+SYSID = 1
+ORIGIN = GeodeticOrigin(lat_deg=47.397742, lon_deg=8.545594, alt_amsl_m=488.0)
+ARM = MavCmd.MAV_CMD_COMPONENT_ARM_DISARM
+
+
+@pytest.fixture
+def link():
+    ap = MavEndpoint(UdpLink(bind=("127.0.0.1", 0), remote=None, learn_remote=True), Codec(md), SYSID, 1)
+    ep = MavEndpoint(UdpLink(bind=("127.0.0.1", 0), remote=("127.0.0.1", ap.link.local_port), learn_remote=False),
+                     Codec(md), SYSID, 191)
+    ap.link.remote = ("127.0.0.1", ep.link.local_port)
+    yield ap, VehicleLink(ep, SYSID, ORIGIN, "udpout://127.0.0.1")
+    ep.close()
+    ap.close()
+
+
+def _readable(ep: MavEndpoint, timeout_s: float = 0.0) -> bool:
+    return bool(select.select([ep.link.fileno()], [], [], timeout_s)[0])
+
+
+def _commands(ap: MavEndpoint) -> list:
+    assert _readable(ap, 3.0), "no COMMAND_LONG reached the autopilot"
+    return [m for m, _ in ap.poll() if m.get_type() == "COMMAND_LONG"]
+
+
+def _ack(ap: MavEndpoint, v: VehicleLink, command: int) -> None:
+    """The autopilot acknowledges; the agent reads the ACK (one read, no tick)."""
+    ap.queue_fields(MsgId.COMMAND_ACK, ap.codec.builder(MsgId.COMMAND_ACK)(
+        command=command, result=MavResult.MAV_RESULT_ACCEPTED, target_system=SYSID, target_component=191))
+    ap.flush()
+    assert _readable(v.ep, 3.0), "the ACK did not come back"
+    for msg, _ in v.ep.poll():
+        v.handle(msg)
+
+
+async def _turns(n: int = 5) -> None:
+    """Let the loop run the ready tasks (no time passes)."""
+    for _ in range(n):
+        await asyncio.sleep(0)
+
+
+def _tick(v: VehicleLink) -> None:
+    """What TickPath._tick does with the link in lockstep: send what is queued, then end the tick."""
+    v.ep.flush()
+    v.tick_done()
+
+
+def test_a_tick_aligned_command_leaves_with_a_tick_and_is_answered_at_a_tick_end(link):
+    ap, v = link
+    v.tick_aligned = True
+
+    async def main():
+        task = asyncio.ensure_future(v.command(ARM, [1.0]))
+        await _turns()
+        assert not _readable(ap) and v.ep.pending == 1  # queued, not sent between ticks
+        _tick(v)
+        (cmd,) = _commands(ap)
+        assert cmd.command == ARM and cmd.param1 == 1.0
+        _ack(ap, v, ARM)
+        await _turns()
+        assert not task.done()  # the answer waits for the end of a tick
+        _tick(v)
+        await _turns()
+        assert task.done() and task.result() == MavResult.MAV_RESULT_ACCEPTED
+        assert not _readable(ap)  # answered at the first try: no resend
+
+    asyncio.run(main())
+
+
+def test_the_answer_and_the_next_telemetry_in_one_read_or_two_give_the_same_tick(link):
+    # The next command follows the answer at the end of the tick after it, however the reads fell.
+    ap, v = link
+    v.tick_aligned = True
+
+    async def launch(log: list) -> None:
+        await v.command(ARM, [1.0])
+        log.append("armed")
+        await v.command(MavCmd.MAV_CMD_NAV_TAKEOFF, [0.0] * 6 + [5.0])
+
+    async def main():
+        log: list = []
+        task = asyncio.ensure_future(launch(log))
+        await _turns()
+        _tick(v)  # tick 1: the arm leaves
+        assert [c.command for c in _commands(ap)] == [ARM]
+        _ack(ap, v, ARM)  # read alone, before tick 2's telemetry
+        await _turns()
+        assert log == [] and not _readable(ap)
+        _tick(v)  # tick 2: the answer reaches the launch at its end
+        await _turns()
+        assert log == ["armed"] and not _readable(ap)  # the take-off is queued, not sent
+        _tick(v)  # tick 3: the take-off leaves
+        assert [c.command for c in _commands(ap)] == [MavCmd.MAV_CMD_NAV_TAKEOFF]
+        _ack(ap, v, MavCmd.MAV_CMD_NAV_TAKEOFF)
+        _tick(v)
+        await _turns()
+        assert task.done() and task.exception() is None
+
+    asyncio.run(main())
+
+
+def test_without_lockstep_a_command_is_sent_and_answered_at_once(link):
+    ap, v = link
+    assert not v.tick_aligned  # the default: real autopilots, real-time runs
+
+    async def main():
+        task = asyncio.ensure_future(v.command(ARM, [1.0]))
+        await _turns()
+        assert [c.command for c in _commands(ap)] == [ARM] and v.ep.pending == 0
+        _ack(ap, v, ARM)
+        await _turns()
+        assert task.done() and task.result() == MavResult.MAV_RESULT_ACCEPTED
+
+    asyncio.run(main())
+
+
+def test_a_tick_aligned_command_with_no_tick_to_carry_it_fails_clearly(link, monkeypatch):
+    ap, v = link
+    v.tick_aligned = True
+    monkeypatch.setattr(vehicle_mod, "TICK_WAIT_S", 0.05)
+
+    async def main():
+        with pytest.raises(CommandError, match="no lockstep tick"):
+            await v.command(ARM, [1.0])
+
+    asyncio.run(main())
+    assert not _readable(ap)
