@@ -65,9 +65,10 @@ async def _turns(n: int = 5) -> None:
 
 
 def _tick(v: VehicleLink) -> None:
-    """What TickPath._tick does with the link in lockstep: send what is queued, then end the tick."""
+    """What TickPath._tick does with the link in lockstep: send what is queued, then end the
+    tick (50 Hz of simulated time)."""
     v.ep.flush()
-    v.tick_done()
+    v.tick_done(v.tick_t_s + 0.02 if v.tick_t_s > -1.0 else 0.0)
 
 
 def test_a_tick_aligned_command_leaves_with_a_tick_and_is_answered_at_a_tick_end(link):
@@ -120,6 +121,30 @@ def test_the_answer_and_the_next_telemetry_in_one_read_or_two_give_the_same_tick
         _tick(v)
         await _turns()
         assert task.done() and task.exception() is None
+
+    asyncio.run(main())
+
+
+def test_a_tick_aligned_command_is_resent_after_its_timeout_in_simulated_time(link):
+    ap, v = link
+    v.tick_aligned = True
+
+    async def main():
+        task = asyncio.ensure_future(v.command(ARM, [1.0], timeout_s=0.1, retries=2))
+        await _turns()
+        _tick(v)  # t = 0: sent
+        await _turns()  # (the agent's loop runs between two ticks)
+        assert [c.command for c in _commands(ap)] == [ARM]
+        for _ in range(5):  # t = 0.02 ... 0.1: no answer, no resend yet
+            _tick(v)
+            await _turns()
+            assert not _readable(ap)
+        _tick(v)  # t = 0.12: the resend leaves with this tick (queued at 0.1 s)
+        assert [c.command for c in _commands(ap)] == [ARM]
+        _ack(ap, v, ARM)
+        _tick(v)
+        await _turns()
+        assert task.done() and task.result() == MavResult.MAV_RESULT_ACCEPTED
 
     asyncio.run(main())
 

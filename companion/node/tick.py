@@ -222,7 +222,7 @@ class TickPath:
         if cfg.lockstep:  # after the setpoint and the published state: this tick is done
             v.send(MsgId.SWARMDROP_TICK, self._tick_marker(time_usec=unix_us))
             self.ap_ep.flush()
-            v.tick_done()  # (answers reach their waiters now: what they send next goes with the next tick)
+            v.tick_done(t)  # (answers reach their waiters now: what they send next goes with the next tick)
 
     def _plan(self, t: float, lp: tuple, ms: int, publish: bool) -> None:
         """Run the Agent (the planner) on this tick's inputs; its setpoint is the output stage's plan.

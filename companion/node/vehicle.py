@@ -68,6 +68,11 @@ class CommandError(RuntimeError):
     """A command was refused, or never acknowledged within its retries."""
 
 
+def _fail_pending(fut: asyncio.Future, err: BaseException) -> None:
+    if not fut.done():
+        fut.set_exception(err)
+
+
 @dataclass
 class Sample:
     """One timed measurement from the autopilot."""
@@ -132,7 +137,12 @@ class VehicleLink:
         self._replies: list[tuple[asyncio.Future, object]] = []
         """Answers held for the end of the tick (tick_aligned)."""
         self._tick_end: asyncio.Future | None = None
-        """Resolved at the end of the next tick (tick_aligned: a queued command has left)."""
+        """Resolved at the end of the next tick (tick_aligned): what was queued has left, and
+        the answers that came before it are with their waiters."""
+        self._tick_timer: asyncio.TimerHandle | None = None
+        """Fails _tick_end if no tick comes for TICK_WAIT_S."""
+        self.tick_t_s = -math.inf
+        """Simulated time of the last tick's end, s (tick_aligned: exchanges time out on it)."""
         self.unread: Callable[[int], None] | None = None
         """Told the id of each message from our autopilot that the agent does not read
         (companion.node.streams: --stop-unread-streams); None: nobody asks."""
@@ -195,31 +205,33 @@ class VehicleLink:
         elif not fut.done():
             fut.set_result(value)
 
-    def tick_done(self) -> None:
-        """The end of a tick, its messages sent (tick_aligned): hand the answers that came
-        before it to their waiters, which then go on after this tick whichever read brought
-        the answer, and tell those waiting for a tick that theirs has gone."""
+    def tick_done(self, t_s: float) -> None:
+        """The end of a tick at simulated time t_s, its messages sent (tick_aligned): hand the
+        answers that came before it to their waiters, then wake the exchanges waiting for a
+        tick's end (_exchange_on_ticks), which go on before the next tick is read."""
+        self.tick_t_s = t_s
         if self._replies:
             replies, self._replies = self._replies, []
             for fut, value in replies:
                 if not fut.done():
                     fut.set_result(value)
         end, self._tick_end = self._tick_end, None
-        if end is not None and not end.done():
-            end.set_result(None)
+        if end is not None:
+            if self._tick_timer is not None:
+                self._tick_timer.cancel()
+            if not end.done():
+                end.set_result(None)
 
-    async def _sent_with_tick(self, what: str) -> None:
-        """Wait for the end of the next tick, which sends what is queued (tick_aligned).
-
-        Raises:
-            CommandError: no tick for TICK_WAIT_S (the lockstep clock never started).
-        """
+    def _next_tick_end(self) -> asyncio.Future:
+        """A future resolved at the end of the next tick (tick_aligned); it fails with
+        CommandError if none comes for TICK_WAIT_S of wall time (the lockstep clock never
+        started). One future for every waiter: awaiting it is a single step of the loop."""
         if self._tick_end is None:
-            self._tick_end = asyncio.get_running_loop().create_future()
-        try:
-            await asyncio.wait_for(asyncio.shield(self._tick_end), TICK_WAIT_S)
-        except asyncio.TimeoutError:
-            raise CommandError(f"{what}: not sent, no lockstep tick for {TICK_WAIT_S:g} s") from None
+            loop = asyncio.get_running_loop()
+            end = self._tick_end = loop.create_future()
+            self._tick_timer = loop.call_later(TICK_WAIT_S, _fail_pending, end, CommandError(
+                f"no lockstep tick for {TICK_WAIT_S:g} s: nothing can be sent to the autopilot"))
+        return self._tick_end
 
     def _other_autopilot(self, sysid: int) -> None:
         """An autopilot that is not ours spoke on this link (a router, or the wrong port)."""
@@ -324,18 +336,35 @@ class VehicleLink:
             custom_mode=0, system_status=MavState.MAV_STATE_ACTIVE))
 
     async def _exchange(self, send, waiter: asyncio.Future, what: str, timeout_s: float, retries: int):
+        if self.tick_aligned:
+            return await self._exchange_on_ticks(send, waiter, what, timeout_s, retries)
         for attempt in range(retries):
             send()
-            if self.tick_aligned:  # it leaves with the next tick's messages: the answer's wait starts then
-                await self._sent_with_tick(what)
-            else:
-                self.ep.flush()
+            self.ep.flush()
             try:
                 return await asyncio.wait_for(asyncio.shield(waiter), timeout_s)
             except asyncio.TimeoutError:
                 log.debug("%s: no answer (attempt %d/%d)", what, attempt + 1, retries)
         waiter.cancel()
         raise CommandError(f"{what}: no answer after {retries} tries of {timeout_s} s")
+
+    async def _exchange_on_ticks(self, send, waiter: asyncio.Future, what: str, timeout_s: float, retries: int):
+        """_exchange in lockstep (tick_aligned): each send leaves with the next tick, the answer
+        is looked for at each tick's end, and timeout_s counts simulated time. The only thing
+        awaited is the tick's end (no timeout wrapper, which would take several steps of the
+        loop to pass the answer on): the exchange goes on, and queues what comes next, right
+        after the tick that brought its answer, before the next tick is read, in every run."""
+        for attempt in range(retries):
+            send()
+            await self._next_tick_end()  # sent
+            deadline = self.tick_t_s + timeout_s
+            while not waiter.done() and self.tick_t_s < deadline:
+                await self._next_tick_end()
+            if waiter.done():
+                return waiter.result()
+            log.debug("%s: no answer (attempt %d/%d)", what, attempt + 1, retries)
+        waiter.cancel()
+        raise CommandError(f"{what}: no answer after {retries} tries of {timeout_s} s (simulated)")
 
     def _command_values(self, command: int, params, confirmation: int = 0) -> tuple:
         """COMMAND_LONG values for our autopilot. Params left out are sent as 0.0, as the
