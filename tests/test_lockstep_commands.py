@@ -149,6 +149,28 @@ def test_a_tick_aligned_command_is_resent_after_its_timeout_in_simulated_time(li
     asyncio.run(main())
 
 
+def test_a_stopped_exchange_leaves_the_others_waiting_for_their_tick(link):
+    ap, v = link
+    v.tick_aligned = True
+
+    async def main():
+        stopped = asyncio.ensure_future(v.command(MavCmd.MAV_CMD_SET_MESSAGE_INTERVAL, [30.0, -1.0]))
+        arm = asyncio.ensure_future(v.command(ARM, [1.0]))
+        await _turns()
+        stopped.cancel()  # (e.g. the stream stopper at exit)
+        await _turns()
+        assert stopped.cancelled() and not arm.done()
+        _tick(v)
+        await _turns()
+        assert ARM in [c.command for c in _commands(ap)]
+        _ack(ap, v, ARM)
+        _tick(v)
+        await _turns()
+        assert arm.done() and arm.result() == MavResult.MAV_RESULT_ACCEPTED
+
+    asyncio.run(main())
+
+
 def test_without_lockstep_a_command_is_sent_and_answered_at_once(link):
     ap, v = link
     assert not v.tick_aligned  # the default: real autopilots, real-time runs

@@ -68,10 +68,6 @@ class CommandError(RuntimeError):
     """A command was refused, or never acknowledged within its retries."""
 
 
-def _fail_pending(fut: asyncio.Future, err: BaseException) -> None:
-    if not fut.done():
-        fut.set_exception(err)
-
 
 @dataclass
 class Sample:
@@ -136,11 +132,12 @@ class VehicleLink:
         then). Off (the default): sent and answered at once."""
         self._replies: list[tuple[asyncio.Future, object]] = []
         """Answers held for the end of the tick (tick_aligned)."""
-        self._tick_end: asyncio.Future | None = None
+        self._tick_waiters: list[asyncio.Future] = []
         """Resolved at the end of the next tick (tick_aligned): what was queued has left, and
-        the answers that came before it are with their waiters."""
+        the answers that came before it are with their waiters. One future per waiter, so
+        that cancelling one (a task stopped) leaves the others waiting."""
         self._tick_timer: asyncio.TimerHandle | None = None
-        """Fails _tick_end if no tick comes for TICK_WAIT_S."""
+        """Fails the _tick_waiters if no tick comes for TICK_WAIT_S."""
         self.tick_t_s = -math.inf
         """Simulated time of the last tick's end, s (tick_aligned: exchanges time out on it)."""
         self.unread: Callable[[int], None] | None = None
@@ -215,23 +212,33 @@ class VehicleLink:
             for fut, value in replies:
                 if not fut.done():
                     fut.set_result(value)
-        end, self._tick_end = self._tick_end, None
-        if end is not None:
-            if self._tick_timer is not None:
-                self._tick_timer.cancel()
-            if not end.done():
-                end.set_result(None)
+        waiters, self._tick_waiters = self._tick_waiters, []
+        if self._tick_timer is not None:
+            self._tick_timer.cancel()
+            self._tick_timer = None
+        for fut in waiters:
+            if not fut.done():
+                fut.set_result(None)
 
     def _next_tick_end(self) -> asyncio.Future:
         """A future resolved at the end of the next tick (tick_aligned); it fails with
-        CommandError if none comes for TICK_WAIT_S of wall time (the lockstep clock never
-        started). One future for every waiter: awaiting it is a single step of the loop."""
-        if self._tick_end is None:
-            loop = asyncio.get_running_loop()
-            end = self._tick_end = loop.create_future()
-            self._tick_timer = loop.call_later(TICK_WAIT_S, _fail_pending, end, CommandError(
-                f"no lockstep tick for {TICK_WAIT_S:g} s: nothing can be sent to the autopilot"))
-        return self._tick_end
+        CommandError if no tick comes for TICK_WAIT_S of wall time (the lockstep clock never
+        started). Awaiting it is a single step of the loop."""
+        loop = asyncio.get_running_loop()
+        fut = loop.create_future()
+        self._tick_waiters.append(fut)
+        if self._tick_timer is None:
+            self._tick_timer = loop.call_later(TICK_WAIT_S, self._no_tick)
+        return fut
+
+    def _no_tick(self) -> None:
+        """TICK_WAIT_S without a tick: fail whoever waits for one."""
+        self._tick_timer = None
+        waiters, self._tick_waiters = self._tick_waiters, []
+        err = CommandError(f"no lockstep tick for {TICK_WAIT_S:g} s: nothing can be sent to the autopilot")
+        for fut in waiters:
+            if not fut.done():
+                fut.set_exception(err)
 
     def _other_autopilot(self, sysid: int) -> None:
         """An autopilot that is not ours spoke on this link (a router, or the wrong port)."""
@@ -356,10 +363,14 @@ class VehicleLink:
         after the tick that brought its answer, before the next tick is read, in every run."""
         for attempt in range(retries):
             send()
-            await self._next_tick_end()  # sent
-            deadline = self.tick_t_s + timeout_s
-            while not waiter.done() and self.tick_t_s < deadline:
-                await self._next_tick_end()
+            try:
+                await self._next_tick_end()  # sent
+                deadline = self.tick_t_s + timeout_s
+                while not waiter.done() and self.tick_t_s < deadline:
+                    await self._next_tick_end()
+            except CommandError:
+                waiter.cancel()
+                raise
             if waiter.done():
                 return waiter.result()
             log.debug("%s: no answer (attempt %d/%d)", what, attempt + 1, retries)
