@@ -93,8 +93,7 @@ def test_a_tick_aligned_command_leaves_with_a_tick_and_is_answered_at_a_tick_end
     asyncio.run(main())
 
 
-def test_the_answer_and_the_next_telemetry_in_one_read_or_two_give_the_same_tick(link):
-    # The next command follows the answer at the end of the tick after it, however the reads fell.
+def test_the_next_command_leaves_with_the_tick_after_the_one_that_brought_the_answer(link):
     ap, v = link
     v.tick_aligned = True
 
@@ -171,6 +170,50 @@ def test_a_stopped_exchange_leaves_the_others_waiting_for_their_tick(link):
     asyncio.run(main())
 
 
+def test_an_exchange_begun_before_the_ticks_goes_on_with_them(link):
+    # (a carrier launch's stream stops may be under way when the agent attaches)
+    ap, v = link
+
+    async def main():
+        task = asyncio.ensure_future(v.command(ARM, [1.0], timeout_s=0.05, retries=2))
+        await _turns()
+        assert [c.command for c in _commands(ap)] == [ARM]  # sent at once: no ticks yet
+        v.tick_aligned = True  # TickPath.attach
+        while not v.ep.pending:  # its wall-clock try times out (0.05 s): the resend is queued...
+            await asyncio.sleep(0.01)
+        assert not _readable(ap)  # ...not sent between ticks
+        _tick(v)
+        await _turns()
+        assert [c.command for c in _commands(ap)] == [ARM]
+        _ack(ap, v, ARM)
+        _tick(v)
+        await _turns()
+        assert task.done() and task.result() == MavResult.MAV_RESULT_ACCEPTED
+
+    asyncio.run(main())
+
+
+def test_a_tick_aligned_pause_counts_simulated_time(link):
+    # (a refused ground launch retries after LAUNCH_RETRY_S: the same tick in every run)
+    _, v = link
+    v.tick_aligned = True
+
+    async def main():
+        task = asyncio.ensure_future(v.sleep_s(0.1))
+        ended = []
+        for _ in range(8):
+            await _turns()
+            if task.done():
+                break
+            _tick(v)
+            ended.append(v.tick_t_s)
+        await _turns()
+        assert task.done() and task.exception() is None
+        assert ended == pytest.approx([0.0, 0.02, 0.04, 0.06, 0.08, 0.10])  # from the first tick's end, 0.1 s on
+
+    asyncio.run(main())
+
+
 def test_without_lockstep_a_command_is_sent_and_answered_at_once(link):
     ap, v = link
     assert not v.tick_aligned  # the default: real autopilots, real-time runs
@@ -186,10 +229,11 @@ def test_without_lockstep_a_command_is_sent_and_answered_at_once(link):
     asyncio.run(main())
 
 
-def test_a_tick_aligned_command_with_no_tick_to_carry_it_fails_clearly(link, monkeypatch):
+def test_a_tick_aligned_command_with_no_tick_to_carry_it_fails_clearly(link):
     ap, v = link
     v.tick_aligned = True
-    monkeypatch.setattr(vehicle_mod, "TICK_WAIT_S", 0.05)
+    assert v.tick_wait_s == vehicle_mod.TICK_WAIT_S  # (TickPath.attach: the set-up timeout, at least this)
+    v.tick_wait_s = 0.05
 
     async def main():
         with pytest.raises(CommandError, match="no lockstep tick"):

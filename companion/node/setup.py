@@ -448,8 +448,8 @@ class Setup:
         Args:
             attach: starts the ticks (AgentNode._attach).
         Raises:
-            NodeFailure(LAUNCH): the ground launch was refused until the timeout.
-            CommandError: no HOME_POSITION from the autopilot (ground launch).
+            NodeFailure(LAUNCH): the ground launch was refused until the timeout, or the
+                autopilot never sent its HOME_POSITION (ground launch).
         """
         cfg, v = self.cfg, self.vehicle
         d = v.ap
@@ -459,7 +459,10 @@ class Setup:
             return  # the carrier releases; the autopilot's throw recovery takes over
         attach()
         loop = asyncio.get_running_loop()
-        home = await v.request_message(MsgId.HOME_POSITION)
+        try:
+            home = await v.request_message(MsgId.HOME_POSITION)
+        except CommandError as err:
+            raise NodeFailure(ExitCode.LAUNCH, f"ground launch of {self.ap_name}: its home position: {err}") from None
         deadline = loop.time() + LAUNCH_TIMEOUT_S
         while True:
             hb = v.hb
@@ -476,7 +479,10 @@ class Setup:
                 if loop.time() > deadline:
                     raise NodeFailure(ExitCode.LAUNCH, f"ground launch of {self.ap_name}: {err}") from None
                 log.info("ground launch: %s; retrying", err)
-                await asyncio.sleep(LAUNCH_RETRY_S)
+            try:
+                await v.sleep_s(LAUNCH_RETRY_S)  # (lockstep: simulated time, the same tick in every run)
+            except CommandError as err:
+                raise NodeFailure(ExitCode.LAUNCH, f"ground launch of {self.ap_name}: {err}") from None
 
     async def arm_for_throw(self) -> None:
         """On the carrier: select the autopilot's throw mode (ArduPilot THROW) and arm, so its

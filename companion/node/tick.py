@@ -14,6 +14,7 @@ ticks), message builders are resolved once here, and no reference cycles are mad
 """
 from __future__ import annotations
 
+import asyncio
 import logging
 import math
 import time
@@ -32,7 +33,7 @@ from companion.node.config import NodeConfig
 from companion.node.offboard import Offboard
 from companion.node.stats import TickCounters
 from companion.node.swarmlink import SwarmLink
-from companion.node.vehicle import VehicleLink
+from companion.node.vehicle import TICK_WAIT_S, VehicleLink
 from companion.output import SEND_ATTITUDE, SEND_NOTHING, OutputStage, output_stage_for
 from companion.swarm import SwarmView, swarm_due, tick_index
 
@@ -102,6 +103,10 @@ class TickPath:
         self._publishes = 0
         self.planned = False
         """Agent.step has run once (its setpoint is the output stage's plan)."""
+        self._settling = False
+        """Lockstep: a tick has just ended; the exchanges it woke have not run yet."""
+        self._ended_us = -1
+        """Lockstep: Unix µs of the last tick whose end was sent."""
         codec = self.ap_ep.codec  # named-field builders, resolved once: one plain call per message
         self._position_target = codec.builder(MsgId.SET_POSITION_TARGET_LOCAL_NED)
         self._attitude_target = codec.builder(MsgId.SET_ATTITUDE_TARGET)
@@ -125,7 +130,10 @@ class TickPath:
             self.vehicle.send(MsgId.SWARMDROP_TICK, self._tick_marker(time_usec=0))
         self.vehicle.heartbeat()
         self.ap_ep.flush()
-        self.vehicle.tick_aligned = self.cfg.lockstep  # (VehicleLink.tick_aligned: from now on, sends go with ticks)
+        # (VehicleLink.tick_aligned: from now on, sends go with ticks; the first may be long in
+        # coming, as a fleet's clock starts once every agent is up)
+        self.vehicle.tick_aligned = self.cfg.lockstep
+        self.vehicle.tick_wait_s = max(TICK_WAIT_S, self.cfg.setup_timeout_s)
         self.flying = True
 
     # ------------------------------------------------------------------ I/O callbacks
@@ -160,6 +168,9 @@ class TickPath:
             v.new_control = False
             return
         if self.cfg.lockstep:
+            if self._settling:  # the last tick woke exchanges: they queue their next sends first
+                asyncio.get_running_loop().call_soon(self._maybe_tick, t_recv)
+                return
             # One instant's inputs, all of them: attitude, and on the ticks the radio delivers
             # (this vehicle's swarm ticks) its batch, ended by the marker.
             if v.att is None or v.att.time_boot_ms != ms:
@@ -176,6 +187,29 @@ class TickPath:
             self._tick(t_recv)
         except Exception:  # a bug must not kill a flying companion: the autopilot failsafes meanwhile
             log.exception("tick failed")
+            unix_us = v.unix_us(ms)
+            if self.cfg.lockstep and unix_us is not None and self._ended_us != unix_us:
+                try:  # the tick is over all the same: the SITL's clock and the waiting exchanges go on
+                    self._end_lockstep_tick(unix_us)
+                except Exception:
+                    log.exception("ending the failed tick failed")
+
+    def _end_lockstep_tick(self, unix_us: int) -> None:
+        """Lockstep: this tick is done, after its setpoint and published state. Its SWARMDROP_TICK
+        to the SITL, then the answers and exchanges that waited for a tick's end
+        (VehicleLink.tick_done); those queue what they send next before the next tick is read
+        (_settling)."""
+        v = self.vehicle
+        v.send(MsgId.SWARMDROP_TICK, self._tick_marker(time_usec=unix_us))
+        self.ap_ep.flush()
+        self._ended_us = unix_us
+        v.tick_done((unix_us - self.epoch_us) * 1e-6)
+        self._settling = True
+        asyncio.get_running_loop().call_soon(self._settled)
+
+    def _settled(self) -> None:
+        """The exchanges the last tick woke have run (they were scheduled before this)."""
+        self._settling = False
 
     # ------------------------------------------------------------------ the control tick
     def _tick(self, t_recv: float) -> None:
@@ -219,10 +253,8 @@ class TickPath:
             self._plan(t, lp, ms, publish)
         if self.sw_ep.pending:
             self.sw_ep.flush()
-        if cfg.lockstep:  # after the setpoint and the published state: this tick is done
-            v.send(MsgId.SWARMDROP_TICK, self._tick_marker(time_usec=unix_us))
-            self.ap_ep.flush()
-            v.tick_done(t)  # (answers reach their waiters now: what they send next goes with the next tick)
+        if cfg.lockstep:
+            self._end_lockstep_tick(unix_us)
 
     def _plan(self, t: float, lp: tuple, ms: int, publish: bool) -> None:
         """Run the Agent (the planner) on this tick's inputs; its setpoint is the output stage's plan.

@@ -125,7 +125,7 @@ class VehicleLink:
         self.tick_aligned = False
         """Lockstep, once the ticks run (TickPath.attach): what this link queues leaves only
         with a tick's messages, before its SWARMDROP_TICK, and the answers to commands and
-        requests reach their waiters only at the end of a tick (release_replies). A command
+        requests reach their waiters only at the end of a tick (tick_done). A command
         then reaches the SITL, and the one after it follows its answer, at the same simulated
         tick in every run, however the processes happen to be scheduled (sent between ticks,
         it landed in whichever tick the SITL was at: a ground launch one tick late, now and
@@ -140,6 +140,9 @@ class VehicleLink:
         """Fails the _tick_waiters if no tick comes for TICK_WAIT_S."""
         self.tick_t_s = -math.inf
         """Simulated time of the last tick's end, s (tick_aligned: exchanges time out on it)."""
+        self.tick_wait_s = TICK_WAIT_S
+        """Wall time a tick-aligned exchange waits for a tick before it fails (TickPath.attach
+        sets it to the node's set-up timeout, at least TICK_WAIT_S)."""
         self.unread: Callable[[int], None] | None = None
         """Told the id of each message from our autopilot that the agent does not read
         (companion.node.streams: --stop-unread-streams); None: nobody asks."""
@@ -205,7 +208,7 @@ class VehicleLink:
     def tick_done(self, t_s: float) -> None:
         """The end of a tick at simulated time t_s, its messages sent (tick_aligned): hand the
         answers that came before it to their waiters, then wake the exchanges waiting for a
-        tick's end (_exchange_on_ticks), which go on before the next tick is read."""
+        tick's end (_answer_on_ticks), which go on before the next tick is read."""
         self.tick_t_s = t_s
         if self._replies:
             replies, self._replies = self._replies, []
@@ -228,14 +231,29 @@ class VehicleLink:
         fut = loop.create_future()
         self._tick_waiters.append(fut)
         if self._tick_timer is None:
-            self._tick_timer = loop.call_later(TICK_WAIT_S, self._no_tick)
+            self._tick_timer = loop.call_later(self.tick_wait_s, self._no_tick)
         return fut
 
+    async def sleep_s(self, duration_s: float) -> None:
+        """Wait duration_s of the autopilot's time: simulated, tick by tick, when tick_aligned
+        (a retry then comes at the same tick in every run), else the loop's clock.
+
+        Raises:
+            CommandError: tick_aligned and no tick for tick_wait_s.
+        """
+        if not self.tick_aligned:
+            await asyncio.sleep(duration_s)
+            return
+        await self._next_tick_end()
+        until = self.tick_t_s + duration_s
+        while self.tick_t_s < until - 1e-9:
+            await self._next_tick_end()
+
     def _no_tick(self) -> None:
-        """TICK_WAIT_S without a tick: fail whoever waits for one."""
+        """tick_wait_s without a tick: fail whoever waits for one."""
         self._tick_timer = None
         waiters, self._tick_waiters = self._tick_waiters, []
-        err = CommandError(f"no lockstep tick for {TICK_WAIT_S:g} s: nothing can be sent to the autopilot")
+        err = CommandError(f"no lockstep tick for {self.tick_wait_s:g} s: nothing can be sent to the autopilot")
         for fut in waiters:
             if not fut.done():
                 fut.set_exception(err)
@@ -343,39 +361,48 @@ class VehicleLink:
             custom_mode=0, system_status=MavState.MAV_STATE_ACTIVE))
 
     async def _exchange(self, send, waiter: asyncio.Future, what: str, timeout_s: float, retries: int):
-        if self.tick_aligned:
-            return await self._exchange_on_ticks(send, waiter, what, timeout_s, retries)
+        """Send, wait for the answer in waiter, resend on timeout; returns the answer.
+
+        Each try goes the way the link is at that moment: sent at once and waited for on the
+        loop's clock, or (tick_aligned, lockstep) sent with the next tick and looked for at
+        each tick's end, timeout_s counted in simulated time (_answer_on_ticks). An exchange
+        begun before the ticks started (a carrier launch's stream stops) goes on with them.
+
+        Raises:
+            CommandError: no answer after `retries` tries, or no lockstep tick to send it.
+        """
         for attempt in range(retries):
             send()
-            self.ep.flush()
-            try:
-                return await asyncio.wait_for(asyncio.shield(waiter), timeout_s)
-            except asyncio.TimeoutError:
-                log.debug("%s: no answer (attempt %d/%d)", what, attempt + 1, retries)
+            if self.tick_aligned:
+                try:
+                    answered = await self._answer_on_ticks(waiter, timeout_s)
+                except CommandError:
+                    waiter.cancel()
+                    raise
+                if answered:
+                    return waiter.result()
+            else:
+                self.ep.flush()
+                try:
+                    return await asyncio.wait_for(asyncio.shield(waiter), timeout_s)
+                except asyncio.TimeoutError:
+                    pass
+            log.debug("%s: no answer (attempt %d/%d)", what, attempt + 1, retries)
         waiter.cancel()
         raise CommandError(f"{what}: no answer after {retries} tries of {timeout_s} s")
 
-    async def _exchange_on_ticks(self, send, waiter: asyncio.Future, what: str, timeout_s: float, retries: int):
-        """_exchange in lockstep (tick_aligned): each send leaves with the next tick, the answer
-        is looked for at each tick's end, and timeout_s counts simulated time. The only thing
-        awaited is the tick's end (no timeout wrapper, which would take several steps of the
-        loop to pass the answer on): the exchange goes on, and queues what comes next, right
-        after the tick that brought its answer, before the next tick is read, in every run."""
-        for attempt in range(retries):
-            send()
-            try:
-                await self._next_tick_end()  # sent
-                deadline = self.tick_t_s + timeout_s
-                while not waiter.done() and self.tick_t_s < deadline:
-                    await self._next_tick_end()
-            except CommandError:
-                waiter.cancel()
-                raise
-            if waiter.done():
-                return waiter.result()
-            log.debug("%s: no answer (attempt %d/%d)", what, attempt + 1, retries)
-        waiter.cancel()
-        raise CommandError(f"{what}: no answer after {retries} tries of {timeout_s} s (simulated)")
+    async def _answer_on_ticks(self, waiter: asyncio.Future, timeout_s: float) -> bool:
+        """One try in lockstep (tick_aligned): what send() queued leaves with the next tick;
+        then look for the answer at each tick's end for timeout_s of simulated time. Only a
+        tick's end is awaited (no timeout wrapper, which takes several steps of the loop to
+        pass an answer on): the exchange goes on, and queues what comes next, right after the
+        tick that brought its answer, before the next tick is read, in every run.
+        Returns True if answered."""
+        await self._next_tick_end()  # sent
+        deadline = self.tick_t_s + timeout_s
+        while not waiter.done() and self.tick_t_s < deadline:
+            await self._next_tick_end()
+        return waiter.done()
 
     def _command_values(self, command: int, params, confirmation: int = 0) -> tuple:
         """COMMAND_LONG values for our autopilot. Params left out are sent as 0.0, as the
