@@ -58,6 +58,14 @@ def _ack(ap: MavEndpoint, v: VehicleLink, command: int) -> None:
         v.handle(msg)
 
 
+async def _accepted(ap: MavEndpoint, v: VehicleLink, task: asyncio.Future, command: int) -> None:
+    """The autopilot accepts; the next tick's end hands the answer over: the exchange is done."""
+    _ack(ap, v, command)
+    _tick(v)
+    await _turns()
+    assert task.done() and task.result() == MavResult.MAV_RESULT_ACCEPTED
+
+
 async def _turns(n: int = 5) -> None:
     """Let the loop run the ready tasks (no time passes)."""
     for _ in range(n):
@@ -140,10 +148,7 @@ def test_a_tick_aligned_command_is_resent_after_its_timeout_in_simulated_time(li
             assert not _readable(ap)
         _tick(v)  # t = 0.12: the resend leaves with this tick (queued at 0.1 s)
         assert [c.command for c in _commands(ap)] == [ARM]
-        _ack(ap, v, ARM)
-        _tick(v)
-        await _turns()
-        assert task.done() and task.result() == MavResult.MAV_RESULT_ACCEPTED
+        await _accepted(ap, v, task, ARM)
 
     asyncio.run(main())
 
@@ -162,10 +167,7 @@ def test_a_stopped_exchange_leaves_the_others_waiting_for_their_tick(link):
         _tick(v)
         await _turns()
         assert ARM in [c.command for c in _commands(ap)]
-        _ack(ap, v, ARM)
-        _tick(v)
-        await _turns()
-        assert arm.done() and arm.result() == MavResult.MAV_RESULT_ACCEPTED
+        await _accepted(ap, v, arm, ARM)
 
     asyncio.run(main())
 
@@ -179,16 +181,15 @@ def test_an_exchange_begun_before_the_ticks_goes_on_with_them(link):
         await _turns()
         assert [c.command for c in _commands(ap)] == [ARM]  # sent at once: no ticks yet
         v.tick_aligned = True  # TickPath.attach
-        while not v.ep.pending:  # its wall-clock try times out (0.05 s): the resend is queued...
+        for _ in range(300):  # its wall-clock try times out (0.05 s): the resend is queued...
+            if v.ep.pending:
+                break
             await asyncio.sleep(0.01)
-        assert not _readable(ap)  # ...not sent between ticks
+        assert v.ep.pending and not _readable(ap)  # ...not sent between ticks
         _tick(v)
         await _turns()
         assert [c.command for c in _commands(ap)] == [ARM]
-        _ack(ap, v, ARM)
-        _tick(v)
-        await _turns()
-        assert task.done() and task.result() == MavResult.MAV_RESULT_ACCEPTED
+        await _accepted(ap, v, task, ARM)
 
     asyncio.run(main())
 
