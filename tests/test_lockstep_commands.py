@@ -58,6 +58,13 @@ def _ack(ap: MavEndpoint, v: VehicleLink, command: int) -> None:
         v.handle(msg)
 
 
+async def _sent(ap: MavEndpoint, v: VehicleLink) -> list[int]:
+    """A tick, a turn of the agent's loop: the commands that tick took to the autopilot."""
+    _tick(v)
+    await _turns()
+    return [c.command for c in _commands(ap)]
+
+
 async def _accepted(ap: MavEndpoint, v: VehicleLink, task: asyncio.Future, command: int) -> None:
     """The autopilot accepts; the next tick's end hands the answer over: the exchange is done."""
     _ack(ap, v, command)
@@ -139,15 +146,12 @@ def test_a_tick_aligned_command_is_resent_after_its_timeout_in_simulated_time(li
     async def main():
         task = asyncio.ensure_future(v.command(ARM, [1.0], timeout_s=0.1, retries=2))
         await _turns()
-        _tick(v)  # t = 0: sent
-        await _turns()  # (the agent's loop runs between two ticks)
-        assert [c.command for c in _commands(ap)] == [ARM]
+        assert await _sent(ap, v) == [ARM]  # t = 0 (the agent's loop runs between two ticks)
         for _ in range(5):  # t = 0.02 ... 0.1: no answer, no resend yet
             _tick(v)
             await _turns()
             assert not _readable(ap)
-        _tick(v)  # t = 0.12: the resend leaves with this tick (queued at 0.1 s)
-        assert [c.command for c in _commands(ap)] == [ARM]
+        assert await _sent(ap, v) == [ARM]  # t = 0.12: the resend leaves with this tick (queued at 0.1 s)
         await _accepted(ap, v, task, ARM)
 
     asyncio.run(main())
@@ -164,9 +168,7 @@ def test_a_stopped_exchange_leaves_the_others_waiting_for_their_tick(link):
         stopped.cancel()  # (e.g. the stream stopper at exit)
         await _turns()
         assert stopped.cancelled() and not arm.done()
-        _tick(v)
-        await _turns()
-        assert ARM in [c.command for c in _commands(ap)]
+        assert ARM in await _sent(ap, v)
         await _accepted(ap, v, arm, ARM)
 
     asyncio.run(main())
@@ -186,9 +188,7 @@ def test_an_exchange_begun_before_the_ticks_goes_on_with_them(link):
                 break
             await asyncio.sleep(0.01)
         assert v.ep.pending and not _readable(ap)  # ...not sent between ticks
-        _tick(v)
-        await _turns()
-        assert [c.command for c in _commands(ap)] == [ARM]
+        assert await _sent(ap, v) == [ARM]
         await _accepted(ap, v, task, ARM)
 
     asyncio.run(main())

@@ -68,7 +68,6 @@ class CommandError(RuntimeError):
     """A command was refused, or never acknowledged within its retries."""
 
 
-
 @dataclass
 class Sample:
     """One timed measurement from the autopilot."""
@@ -208,7 +207,7 @@ class VehicleLink:
     def tick_done(self, t_s: float) -> None:
         """The end of a tick at simulated time t_s, its messages sent (tick_aligned): hand the
         answers that came before it to their waiters, then wake the exchanges waiting for a
-        tick's end (_answer_on_ticks), which go on before the next tick is read."""
+        tick's end (_ticks_for), which go on before the next tick is read."""
         self.tick_t_s = t_s
         if self._replies:
             replies, self._replies = self._replies, []
@@ -241,12 +240,24 @@ class VehicleLink:
         Raises:
             CommandError: tick_aligned and no tick for tick_wait_s.
         """
-        if not self.tick_aligned:
+        if self.tick_aligned:
+            await self._ticks_for(duration_s)
+        else:
             await asyncio.sleep(duration_s)
-            return
+
+    async def _ticks_for(self, duration_s: float, answer: asyncio.Future | None = None) -> None:
+        """(tick_aligned) Wait for the next tick's end (what is queued has left), then for
+        duration_s more of simulated time, or until `answer` is done. Only a tick's end is
+        awaited (no timeout wrapper, which takes several steps of the loop to pass an answer
+        on): the waiter goes on, and queues what comes next, right after the tick that brought
+        its answer, before the next tick is read, in every run.
+
+        Raises:
+            CommandError: no tick for tick_wait_s.
+        """
         await self._next_tick_end()
         until = self.tick_t_s + duration_s
-        while self.tick_t_s < until - 1e-9:
+        while not (answer is not None and answer.done()) and self.tick_t_s < until - 1e-9:
             await self._next_tick_end()
 
     def _no_tick(self) -> None:
@@ -365,7 +376,7 @@ class VehicleLink:
 
         Each try goes the way the link is at that moment: sent at once and waited for on the
         loop's clock, or (tick_aligned, lockstep) sent with the next tick and looked for at
-        each tick's end, timeout_s counted in simulated time (_answer_on_ticks). An exchange
+        each tick's end, timeout_s counted in simulated time (_ticks_for). An exchange
         begun before the ticks started (a carrier launch's stream stops) goes on with them.
 
         Raises:
@@ -375,11 +386,11 @@ class VehicleLink:
             send()
             if self.tick_aligned:
                 try:
-                    answered = await self._answer_on_ticks(waiter, timeout_s)
+                    await self._ticks_for(timeout_s, waiter)
                 except CommandError:
                     waiter.cancel()
                     raise
-                if answered:
+                if waiter.done():
                     return waiter.result()
             else:
                 self.ep.flush()
@@ -390,19 +401,6 @@ class VehicleLink:
             log.debug("%s: no answer (attempt %d/%d)", what, attempt + 1, retries)
         waiter.cancel()
         raise CommandError(f"{what}: no answer after {retries} tries of {timeout_s} s")
-
-    async def _answer_on_ticks(self, waiter: asyncio.Future, timeout_s: float) -> bool:
-        """One try in lockstep (tick_aligned): what send() queued leaves with the next tick;
-        then look for the answer at each tick's end for timeout_s of simulated time. Only a
-        tick's end is awaited (no timeout wrapper, which takes several steps of the loop to
-        pass an answer on): the exchange goes on, and queues what comes next, right after the
-        tick that brought its answer, before the next tick is read, in every run.
-        Returns True if answered."""
-        await self._next_tick_end()  # sent
-        deadline = self.tick_t_s + timeout_s
-        while not waiter.done() and self.tick_t_s < deadline:
-            await self._next_tick_end()
-        return waiter.done()
 
     def _command_values(self, command: int, params, confirmation: int = 0) -> tuple:
         """COMMAND_LONG values for our autopilot. Params left out are sent as 0.0, as the
