@@ -152,6 +152,7 @@ def summary_lines(report: FleetReport, out_dir: Path) -> list[str]:
 
     fl = report.fleet
     fmt = lambda x, p=2: "n/a" if x is None else f"{x:.{p}f}"  # noqa: E731
+    pct = lambda x, p: fmt(None if x is None else 100 * x, p)  # noqa: E731  (a share, in %; n/a: not measured)
     how = "INTERRUPTED" if fl.interrupted else ("ABORTED (" + fl.aborted + ")" if fl.aborted else "")
     if report.metrics is None:
         lines = [f"run directory: {out_dir}", f"  {how or 'STOPPED'} before the SITL recorded its first sample: "
@@ -165,10 +166,10 @@ def summary_lines(report: FleetReport, out_dir: Path) -> list[str]:
     lines += [
         f"  fleet: {fl.agents} agent processes ({fl.dialect}, {fl.output}, "
         f"{'lockstep' if fl.lockstep else 'real time'}), dead: {fl.dead_agents or 'none'}",
-        f"  agent CPU: mean {fmt(100 * (fl.agent_cpu_fraction_of_core.mean or 0), 2)} % of a core,"
+        f"  agent CPU: mean {pct(fl.agent_cpu_fraction_of_core.mean, 2)} % of a core,"
         f" latency (all agents) p50 {fmt(lat.get('p50'))} ms,"
-        f" p99 {fmt(lat.get('p99'))} ms, deadline misses {fmt(100 * (dm.fraction or 0), 3)} %",
+        f" p99 {fmt(lat.get('p99'))} ms, deadline misses {pct(dm.fraction, 3)} %",
         f"  agent start {fmt(fl.agent_startup_s.max)} s (max), PSS {fmt(fl.agent_pss_mb.mean, 1)} MB;"
-        f" SITL CPU {fmt(100 * (fl.sitl_cpu_fraction_of_core or 0), 1)} % of a core",
+        f" SITL CPU {pct(fl.sitl_cpu_fraction_of_core, 1)} % of a core",
     ]
     return lines
