@@ -224,3 +224,29 @@ def test_heartbeats_in_one_tick_of_the_loop_clock_are_each_judged(dialect):
             ap.close()
 
     asyncio.run(main())
+
+
+def test_in_lockstep_the_wait_for_the_heartbeat_runs_on_simulated_time():
+    """Outside lockstep the wait runs on the loop's clock; once sends go with a lockstep SITL's
+    ticks, on the simulated time of the last tick's end: a lockstep run slower than real time
+    must not give up on a HEARTBEAT that PX4 sends once a simulated second (nor a faster one
+    wait longer), or two runs would differ."""
+    async def body() -> None:
+        ap = ScriptedAutopilot("px4")
+        ag = Agent(ap)
+        try:
+            off = Offboard(ag.v)  # (the default clock)
+            loop = asyncio.get_running_loop()
+            assert abs(off.clock() - loop.time()) < 0.5
+            ag.v.tick_aligned = True
+            ag.v.tick_done(1234.5)
+            assert off.clock() == 1234.5
+            off.state, off.accepted_at = OffboardState.CONFIRMING, 1234.5
+            ag.v.tick_done(1234.5 + OFFBOARD_CONFIRM_S - 0.02)  # wall time means nothing here
+            off.ensure()
+            assert off.state is OffboardState.CONFIRMING
+        finally:
+            ag.close()
+            ap.close()
+
+    asyncio.run(body())

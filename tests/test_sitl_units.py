@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 
 from companion.config import replace
+from companion.link.enums import MsgId
 from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target
 from companion.params import InnerLoopConfig
-from sim_bridge.sitl.autopilot import ACCEPTED, TEMPORARILY_REJECTED, Mode
+from sim_bridge.sitl.autopilot import ACCEPTED, HEARTBEAT_PHASE_STEP_S, TEMPORARILY_REJECTED, Mode
 from sim_bridge.sitl.autopilots import autopilot_named
 from sim_bridge.sitl.config import default_scenario, sitl_config
 from sim_bridge.sitl.params_table import (
@@ -304,3 +305,45 @@ def test_body_rate_setpoint_is_integrated_into_an_attitude_target():
     assert ap.mode == Mode.OFFBOARD
     assert yaw1 - yaw0 == pytest.approx(0.4, abs=0.1)
     assert np.degrees(np.arccos(s.state.rot_body_to_ned[0, 2, 2])) < 3
+
+
+@pytest.mark.parametrize("dialect", ["px4", "ardupilot"])
+def test_a_mode_change_shows_in_px4s_next_1hz_heartbeat_and_in_ardupilots_at_once(dialect):
+    """PX4 acknowledges a mode change before its next 1 Hz HEARTBEAT shows it (up to a second
+    later: ../shared/notes/mavlink-facts.md); ArduCopter's set_mode sends a HEARTBEAT at once.
+    The SITL's HEARTBEATs, sent at once or on the wall clock, say what each would say."""
+    s = _server(vehicles=3, dialect=dialect)
+    k = 2
+    ap, d = s.autopilots[k], s.autopilots[k].dialect
+    sent: list[tuple[float, int, int]] = []  # (sim time, custom_mode, base_mode) of each HEARTBEAT vehicle k sent
+    broadcast = s.broadcast
+
+    def record(j, msg):
+        if j == k and msg[0] == MsgId.HEARTBEAT:
+            sent.append((s.sim_s, msg[1][3], msg[1][2]))  # (declaration order: type, autopilot, base_mode, custom_mode, ...)
+        broadcast(j, msg)
+
+    s.broadcast = record
+    assert _run_until(s, lambda: ap.has_fix, 30)  # (a position mode needs the EKF's fix)
+    hold, position = d.custom_mode(Mode.HOLD), d.custom_mode(Mode.POSITION)
+    assert s.telemetry.heartbeat(k)[1][3] == hold
+    sent.clear()
+    t_ack = s.sim_s
+    assert ap.command_set_mode(*d.set_mode_params(Mode.POSITION), t_ack) == ACCEPTED and ap.mode == Mode.POSITION
+    s.after_change(k)  # (as the server does right after it sends the ACK)
+    if dialect == "ardupilot":
+        assert sent == [(t_ack, position, sent[0][2])]  # one HEARTBEAT, right after the ACK, shows it
+        return
+    assert sent == [] and s.telemetry.heartbeat(k)[1][3] == hold  # nothing at once; a HEARTBEAT now says Hold
+    assert _run_until(s, lambda: sent, 1.0 + 2 * s.tick_s)
+    (t_shown, mode, _), = sent
+    assert mode == position and 0.0 < t_shown - t_ack <= 1.0 + s.tick_s
+    ap_tick_s = s.fleet.ap_every * s.tick_s  # (the autopilot logic's period: a slot is seen on its next tick)
+    phase = (t_shown - k * HEARTBEAT_PHASE_STEP_S) % 1.0  # its slots: 1 s apart, at this vehicle's own phase
+    assert phase < ap_tick_s + 1e-9
+    sent.clear()
+    assert ap.command_arm(1, NAN, s.sim_s) == ACCEPTED
+    s.after_change(k)
+    assert sent == []
+    assert _run_until(s, lambda: sent, 1.0 + 2 * s.tick_s)
+    assert abs(sent[0][0] - t_shown - 1.0) < 1e-9 and sent[0][2] & 128  # the next slot shows it armed

@@ -65,13 +65,15 @@ class Offboard:
 
     Args:
         vehicle: the autopilot link (its HEARTBEAT has been heard: set-up waited for it).
-        clock: monotonic time, s, on the clock of vehicle.hb_loop_time (default: the
-            running event loop's time, which VehicleLink stamps HEARTBEATs with).
+        clock: monotonic time, s (default: the running event loop's time; in lockstep, once
+            sends go with ticks (vehicle.tick_aligned), the simulated time of the last tick's
+            end, so that the wait for a HEARTBEAT that PX4 sends once a simulated second ends
+            on the same tick in every run, however fast the run goes).
     """
 
     def __init__(self, vehicle: VehicleLink, clock: Callable[[], float] | None = None):
         self.vehicle = vehicle
-        self.clock = clock or (lambda: asyncio.get_running_loop().time())
+        self.clock = clock or self._clock
         self.state = OffboardState.IDLE
         self.task: asyncio.Task | None = None
         """The last request (AgentNode.run cancels it at exit)."""
@@ -81,6 +83,10 @@ class Offboard:
         """clock() when the last request was accepted (NaN: none pending confirmation)."""
         self._judged = 0
         """hb_seq of the newest HEARTBEAT already judged."""
+
+    def _clock(self) -> float:
+        v = self.vehicle
+        return v.tick_t_s if v.tick_aligned else asyncio.get_running_loop().time()
 
     def ensure(self) -> None:
         """Called on every tick that sent a formation setpoint: judge a HEARTBEAT that is new

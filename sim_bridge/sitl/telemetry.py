@@ -234,9 +234,10 @@ class TelemetryBuilder:
 
     def heartbeat(self, k: int) -> Outgoing:
         ap = self.aps[k]
+        base_mode, custom_mode, system_status = ap.heartbeat_fields()
         return HEARTBEAT, self.build_fields[HEARTBEAT](
-            type=MavType.MAV_TYPE_QUADROTOR, autopilot=ap.dialect.autopilot_id, base_mode=ap.base_mode,
-            custom_mode=ap.custom_mode, system_status=ap.system_status)
+            type=MavType.MAV_TYPE_QUADROTOR, autopilot=ap.dialect.autopilot_id, base_mode=base_mode,
+            custom_mode=custom_mode, system_status=system_status)
 
     def statustext(self, severity: int, text: str) -> Outgoing:
         return MsgId.STATUSTEXT, self.build_fields[MsgId.STATUSTEXT](severity=severity, text=text.encode()[:50])

@@ -95,6 +95,11 @@ class AutopilotBehaviour(ABC):
     """A SET_MESSAGE_INTERVAL for a message it does not stream is answered FAILED (PX4 and
     ArduPilot alike) and also announced in a STATUSTEXT (ArduPilot: "No ap_message for
     mavlink id (N)", GCS_Common.cpp)."""
+    heartbeat_on_change: ClassVar[bool] = True
+    """A mode or arming change goes out in a HEARTBEAT at once, right after the command's ACK
+    (ArduCopter's set_mode sends MSG_HEARTBEAT); else (PX4, whose HEARTBEAT is a 1 Hz stream) it
+    shows in the next of its 1 Hz HEARTBEATs, up to a second after the ACK
+    (../shared/notes/mavlink-facts.md): the order behind a companion's false "left offboard"."""
     attitude_thrust_follows_tilt: ClassVar[bool] = False
     """The inner-loop thrust of an attitude setpoint depends on the tilt (angle boost, a
     climb rate): the setpoint is rebuilt every tick while one is flown."""

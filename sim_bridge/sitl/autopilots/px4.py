@@ -31,6 +31,7 @@ class Px4Behaviour(AutopilotBehaviour):
     release_mode = Mode.TAKEOFF
     after_takeoff_mode = Mode.HOLD
     supports_failure_injection = True
+    heartbeat_on_change = False  # a 1 Hz stream: a new mode shows in the next one (mavlink-facts.md)
 
     def own_specs(self, inner: InnerLoopConfig, sysid: int, hover_thrust: float) -> list[ParamSpec]:
         f, i, R = real_param, int_param, Role
