@@ -33,7 +33,7 @@ from companion.link.dialects import Mode, dialect_named  # noqa: E402
 from companion.link.dialects.base import AfterLoss  # noqa: E402
 from companion.mission import MissionConfig  # noqa: E402
 from sim_bridge.runs.fleet import EPOCH_UNIX_S  # noqa: E402
-from sim_bridge.sitl.autopilot import HEARTBEAT_PERIOD_S, HEARTBEAT_PHASE_STEP_S  # noqa: E402
+from sim_bridge.sitl.heartbeat import HEARTBEAT_PERIOD_S, HEARTBEAT_PHASE_STEP_S  # noqa: E402
 
 pytestmark = pytest.mark.slow
 

@@ -11,9 +11,10 @@ from companion.config import replace
 from companion.link.enums import MsgId
 from companion.link.setpoints import Rejected, decode_attitude_target, decode_position_target
 from companion.params import InnerLoopConfig
-from sim_bridge.sitl.autopilot import ACCEPTED, HEARTBEAT_PHASE_STEP_S, TEMPORARILY_REJECTED, Mode
+from sim_bridge.sitl.autopilot import ACCEPTED, TEMPORARILY_REJECTED, Mode
 from sim_bridge.sitl.autopilots import autopilot_named
 from sim_bridge.sitl.config import default_scenario, sitl_config
+from sim_bridge.sitl.heartbeat import HEARTBEAT_PHASE_STEP_S
 from sim_bridge.sitl.params_table import (
     MAV_PARAM_TYPE_INT32,
     MAV_PARAM_TYPE_REAL32,

@@ -40,6 +40,7 @@ from companion.link.enums import MavResult, MavSeverity
 from companion.link.setpoints import AttitudeSetpoint, TrajectorySetpoint
 from companion.state import FleetSetpoint, FleetState
 from sim_bridge.sitl.autopilots import AutopilotBehaviour
+from sim_bridge.sitl.heartbeat import HeartbeatView
 from sim_bridge.sitl.offboard_target import OffboardTarget
 from sim_bridge.sitl.params_table import ParamTable
 from sim_bridge.world.autopilot_model import (
@@ -61,11 +62,6 @@ FORCE_MAGIC = 21196
 """MAV_CMD_COMPONENT_ARM_DISARM param2 that forces arming or disarming (MAVLink's own magic number)."""
 
 AIRBORNE_HEIGHT_M = 0.15
-HEARTBEAT_PERIOD_S = 1.0
-"""The period of a PX4-like autopilot's HEARTBEAT stream in simulation time, s (behaviour.heartbeat_on_change False)."""
-HEARTBEAT_PHASE_STEP_S = 0.381966
-"""Vehicle k's HEARTBEAT slots fall at k times this (mod the period) past each whole period: real
-autopilots, booted at different instants, do not all send together (1 - 1/golden ratio: spread evenly)."""
 SETTABLE = frozenset({Mode.POSITION, Mode.OFFBOARD, Mode.TAKEOFF, Mode.HOLD, Mode.LAND, Mode.THROW})
 """Modes a DO_SET_MODE may ask for (no RC: Manual and Return are refused)."""
 
@@ -109,8 +105,8 @@ class Autopilot:
         self.events: list[tuple[int, str]] = []
         self.changed = False
         """A HEARTBEAT is due now: set on a mode or arming change where the family sends one at
-        once (behaviour.heartbeat_on_change), else when a 1 Hz slot shows a change (tick); the
-        server sends it and clears this."""
+        once, else when a 1 Hz slot shows a change (tick; sim_bridge.sitl.heartbeat); the server
+        sends it and clears this."""
         self.setpoints_ignored = 0
         """Offboard setpoints dropped because the mode does not fly them (ArduPilot outside GUIDED)."""
         self.offb = OffboardTarget()
@@ -134,10 +130,9 @@ class Autopilot:
         self._tko_target_z = self.pos[2]
         self._tko_sp_z = self.pos[2]
         self._fence_breached = False
-        self._hb_slot_s = now_s + (index * HEARTBEAT_PHASE_STEP_S) % HEARTBEAT_PERIOD_S
-        """Simulation time of the next 1 Hz HEARTBEAT slot (families without heartbeat_on_change), s."""
-        self._hb_shown = self._live_heartbeat()
-        """(base_mode, custom_mode, system_status) as the last slot showed them."""
+        self.heartbeat = HeartbeatView(behaviour.heartbeat_on_change, index, now_s,
+                                       lambda: (self.base_mode, self.custom_mode, self.system_status))
+        """What its HEARTBEAT says (sim_bridge.sitl.heartbeat)."""
         self._publish()
 
     # ---- vehicle state views -------------------------------------------------
@@ -163,32 +158,9 @@ class Autopilot:
         return self.origin_ned_m is not None
 
     # ---- reported state ------------------------------------------------------
-    def heartbeat_fields(self) -> tuple[int, int, int]:
-        """(base_mode, custom_mode, system_status) as this vehicle's HEARTBEAT says them now: the
-        live state where the family sends a HEARTBEAT on every change, else the state at the last
-        1 Hz slot (a change shows in the next one, as on PX4)."""
-        if self.behaviour.heartbeat_on_change:
-            return self._live_heartbeat()
-        return self._hb_shown
-
-    def _live_heartbeat(self) -> tuple[int, int, int]:
-        return self.base_mode, self.custom_mode, self.system_status
-
     def _state_changed(self) -> None:
-        """A mode or arming change: a HEARTBEAT at once where the family sends one (else the next slot shows it)."""
-        if self.behaviour.heartbeat_on_change:
-            self.changed = True
-
-    def _heartbeat_slot(self, now_s: float) -> None:
-        """At each 1 Hz slot (simulation time, so that lockstep runs stay bit-identical), a
-        family without heartbeat_on_change shows its state; a HEARTBEAT goes out at once if that
-        changed it (the stream's regular ones are the server's, on the wall clock)."""
-        if self.behaviour.heartbeat_on_change or now_s < self._hb_slot_s - 1e-9:
-            return
-        self._hb_slot_s += HEARTBEAT_PERIOD_S * (1 + math.floor((now_s - self._hb_slot_s) / HEARTBEAT_PERIOD_S + 1e-9))
-        live = self._live_heartbeat()
-        if live != self._hb_shown:
-            self._hb_shown = live
+        """A mode or arming change: a HEARTBEAT at once where the family sends one (else its next slot shows it)."""
+        if self.heartbeat.at_once:
             self.changed = True
 
     @property
@@ -384,7 +356,8 @@ class Autopilot:
         """Periodic logic: landing detection, take-off ramp, failsafes, auto-disarm, throw."""
         dt = max(0.0, now_s - self._last_tick_t)
         self._last_tick_t = self._now_s = now_s
-        self._heartbeat_slot(now_s)
+        if self.heartbeat.slot(now_s):
+            self.changed = True
         if self.docked:
             return
         self._detect_landing(now_s)

@@ -234,7 +234,7 @@ class TelemetryBuilder:
 
     def heartbeat(self, k: int) -> Outgoing:
         ap = self.aps[k]
-        base_mode, custom_mode, system_status = ap.heartbeat_fields()
+        base_mode, custom_mode, system_status = ap.heartbeat.fields()
         return HEARTBEAT, self.build_fields[HEARTBEAT](
             type=MavType.MAV_TYPE_QUADROTOR, autopilot=ap.dialect.autopilot_id, base_mode=base_mode,
             custom_mode=custom_mode, system_status=system_status)
