@@ -189,3 +189,46 @@ def test_open_link_gives_udpin_the_rule_and_udpout_none():
     finally:
         link.close()
         out.close()
+
+
+@pytest.mark.parametrize("event_loop", ["asyncio", "uvloop"])
+def test_one_datagram_a_read_and_the_loop_calls_again_while_more_wait(event_loop):
+    """The agent reads one datagram each time its autopilot socket is readable (TickPath:
+    no last read that finds the socket empty, a syscall a tick): the event loops it flies on
+    call a reader again while data waits (level-triggered), so three datagrams queued at
+    once are three calls, in order, and nothing is left."""
+    import asyncio
+
+    from companion.node.cli import event_loop_factory  # (what `swarmdrop agent --event-loop` flies on)
+
+    link = UdpLink(bind=("127.0.0.1", 0), remote=None, learn_remote=True)
+    peer = Peer(*AUTOPILOT)
+    try:
+        for _ in range(3):
+            peer.heartbeat(link.local_port)
+        assert select.select([link.fileno()], [], [], DEADLINE_S)[0]  # (loopback delivers on send: all three wait)
+        reads: list[int] = []
+
+        async def body() -> None:
+            loop = asyncio.get_running_loop()
+            done = loop.create_future()
+
+            def readable() -> None:
+                reads.append(len(link.recv(1)))
+                if len(reads) == 3:
+                    done.set_result(None)
+
+            loop.add_reader(link.fileno(), readable)
+            try:
+                await asyncio.wait_for(done, DEADLINE_S)
+            finally:
+                loop.remove_reader(link.fileno())
+
+        factory, _ = event_loop_factory(event_loop)
+        with asyncio.Runner(loop_factory=factory) as runner:
+            runner.run(body())
+        assert reads == [1, 1, 1] and link.frames_in == 3
+        assert link.recv(1) == [] and link.recv() == []  # nothing left
+    finally:
+        link.close()
+        peer.sock.close()

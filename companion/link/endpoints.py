@@ -84,8 +84,14 @@ class Link:
     def fileno(self) -> int:
         raise NotImplementedError
 
-    def recv(self) -> list[tuple[bytes, Any]]:
-        """Whole frames waiting now, with the address they came from; never blocks."""
+    def recv(self, max_datagrams: int = MAX_DATAGRAMS_PER_RECV) -> list[tuple[bytes, Any]]:
+        """Whole frames waiting now, with the address they came from; never blocks.
+
+        Args:
+            max_datagrams: a datagram link reads at most this many datagrams (1: one, and no
+                read that finds the socket empty; a level-triggered event loop calls again
+                while more wait). A stream link reads what is there either way.
+        """
         raise NotImplementedError
 
     def send(self, frame: bytes, addr: Any = None) -> bool:
@@ -181,10 +187,10 @@ class UdpLink(Link):
     def fileno(self) -> int:
         return self.sock.fileno()
 
-    def recv(self) -> list[tuple[bytes, Any]]:
+    def recv(self, max_datagrams: int = MAX_DATAGRAMS_PER_RECV) -> list[tuple[bytes, Any]]:
         out: list[tuple[bytes, Any]] = []
         sock = self.sock
-        for _ in range(MAX_DATAGRAMS_PER_RECV):
+        for _ in range(max_datagrams):
             try:
                 data, addr = sock.recvfrom(65535)
             except (BlockingIOError, InterruptedError):
@@ -263,7 +269,7 @@ class StreamLink(Link):
     def fileno(self) -> int:
         return self._fd
 
-    def recv(self) -> list[tuple[bytes, Any]]:
+    def recv(self, max_datagrams: int = MAX_DATAGRAMS_PER_RECV) -> list[tuple[bytes, Any]]:
         out: list[tuple[bytes, Any]] = []
         for _ in range(64):
             try:
@@ -392,7 +398,7 @@ class MavEndpoint:
         """Told (msgid, frame) of each well-formed frame whose message the codec does not
         define (counted in unknown and dropped either way)."""
 
-    def _drain(self, take: Callable[[bytes, Any], None]) -> None:
+    def _drain(self, take: Callable[[bytes, Any], None], max_datagrams: int = MAX_DATAGRAMS_PER_RECV) -> None:
         """Pass every waiting frame and its source address to take, which decodes it and
         keeps the result; a frame take rejects is counted (unknown / bad) and dropped, a
         kept one goes to the tlog. A kept frame moves the link's reply address only as the
@@ -400,7 +406,7 @@ class MavEndpoint:
         n, tlog, sg, link, last_addr = 0, self.tlog, self.signing, self.link, None
         peer_ids, learn = link.peer_ids, link.learn_remote
         verdict = TRUSTED
-        for frame, addr in link.recv():
+        for frame, addr in link.recv(max_datagrams):
             ids_match = peer_ids is None or frame_ids(frame) == peer_ids
             if sg is not None:
                 verdict = sg.verdict(frame)
@@ -440,9 +446,10 @@ class MavEndpoint:
         self._drain(lambda frame, addr: out.append((decode(frame), addr)))
         return out
 
-    def poll_split(self, raw_ids: frozenset) -> tuple[list, list]:
+    def poll_split(self, raw_ids: frozenset, max_datagrams: int = MAX_DATAGRAMS_PER_RECV) -> tuple[list, list]:
         """Like poll, but messages whose id is in raw_ids come as (msgid, sysid, compid,
-        wire-order values) tuples (no message object); returns (raw list, message list)."""
+        wire-order values) tuples (no message object); returns (raw list, message list).
+        max_datagrams: as Link.recv's."""
         raw, msgs = [], []
         decode, decode_raw = self.codec.decode, self.codec.decode_raw
 
@@ -453,7 +460,7 @@ class MavEndpoint:
             else:
                 msgs.append(decode(frame))
 
-        self._drain(take)
+        self._drain(take, max_datagrams)
         return raw, msgs
 
     def poll_raw(self) -> list[tuple[int, int, int, tuple, Any]]:

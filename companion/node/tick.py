@@ -141,7 +141,7 @@ class TickPath:
         """The autopilot socket is readable: take everything, tick on a new position."""
         t_recv = time.perf_counter()
         v = self.vehicle
-        raw, msgs = self.ap_ep.poll_split(v.RAW_IDS)
+        raw, msgs = self.ap_ep.poll_split(v.RAW_IDS, 1)  # (one datagram: the loop calls again while more wait)
         for msg in msgs:
             v.handle(msg)
         for r in raw:
