@@ -8,7 +8,8 @@ file, which wraps the agent's parts (the tick path, the plan, Agent.step, the ne
 autopilot reads, the sends) in counters of the thread's CPU clock and writes them at exit;
 then prints the mean over the agents, per second of flight since the agent attached, next
 to the process's whole CPU. The parts nest (on_autopilot holds the tick, the tick holds the
-plan, ...). The counters cost about two clock reads a call: the whole comes out 1-2 % high.
+plan, ...); udp_recv and udp_send are the socket reads and sends of both links (the system
+calls and, for a send on the loopback, the kernel's delivery to the receiver). The counters cost about two clock reads a call: the whole comes out 1-2 % high.
 The agents run the same code as ever; nothing is patched outside this process.
 """
 from __future__ import annotations
@@ -38,6 +39,8 @@ PARTS = (  # (module, class, method, name)
     ("companion.link.endpoints", "MavEndpoint", "poll_split", "autopilot_read"),
     ("companion.link.endpoints", "MavEndpoint", "flush", "flush"),
     ("companion.node.runner", "AgentNode", "write_stats", "write_stats"),
+    ("companion.link.endpoints", "UdpLink", "recv", "udp_recv"),
+    ("companion.link.endpoints", "UdpLink", "send", "udp_send"),
 )
 
 
