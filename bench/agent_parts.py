@@ -9,7 +9,8 @@ autopilot reads, the sends) in counters of the thread's CPU clock and writes the
 then prints the mean over the agents, per second of flight since the agent attached, next
 to the process's whole CPU. The parts nest (on_autopilot holds the tick, the tick holds the
 plan, ...); udp_recv and udp_send are the socket reads and sends of both links (the system
-calls and, for a send on the loopback, the kernel's delivery to the receiver). The counters cost about two clock reads a call: the whole comes out 1-2 % high.
+calls and, for a send on the loopback, the kernel's delivery to the receiver). The counters
+cost about two clock reads a call: the whole comes out 1-2 % high.
 The agents run the same code as ever; nothing is patched outside this process.
 """
 from __future__ import annotations
