@@ -97,8 +97,8 @@ class AutopilotBehaviour(ABC):
     mavlink id (N)", GCS_Common.cpp)."""
     heartbeat_on_change: ClassVar[bool] = True
     """A mode or arming change goes out in a HEARTBEAT at once, right after the command's ACK
-    (ArduCopter's set_mode sends MSG_HEARTBEAT); else (PX4, whose HEARTBEAT is a 1 Hz stream) it
-    shows in the next of its 1 Hz HEARTBEATs, up to a second after the ACK
+    (ArduCopter's set_mode sends MSG_HEARTBEAT; for arming this is assumed, not read); else
+    (PX4, whose HEARTBEAT is a 1 Hz stream) it shows in the next of its 1 Hz HEARTBEATs, up to a second after the ACK
     (../shared/notes/mavlink-facts.md): the order behind a companion's false "left offboard"."""
     attitude_thrust_follows_tilt: ClassVar[bool] = False
     """The inner-loop thrust of an attitude setpoint depends on the tilt (angle boost, a
