@@ -160,12 +160,15 @@ def test_synthetic_feed_of_six_vehicles_drawn_moving_and_tabled(browser, tmp_pat
         # the table: every vehicle with its phase and the age of its last state, heard at ~10 states/s
         page.wait_for_function("() => document.querySelectorAll('#vtab tbody tr:not([hidden])').length === 6",
                                timeout=5_000)
+        # every age under 1 s (awaited, not read once: the feed's thread may lag a moment)
+        page.wait_for_function("() => [...document.querySelectorAll('#vtab tbody tr:not([hidden]) td:nth-child(3)')]"
+                               ".every(td => { const a = parseFloat(td.textContent); return a >= 0 && a < 1.0; })",
+                               timeout=5_000)
         rows = page.locator("#vtab tbody tr:not([hidden])")
         phases = ["launch", "stabilise", "assemble", "transit", "hover", "land"]
         for k in range(6):
             cells = rows.nth(k).locator("td").all_inner_texts()
             assert cells[0] == str(k) and cells[1].strip() == phases[k], cells
-            assert 0.0 <= float(cells[2]) < 1.0, cells  # age, s
         page.wait_for_function("() => [...document.querySelectorAll('#vtab tbody tr:not([hidden]) td:nth-child(4)')]"
                                ".every(td => parseFloat(td.textContent) >= 8)", timeout=15_000)
         expect(page.locator("#h-heard")).to_have_text("6 / 6")
@@ -326,10 +329,11 @@ def test_fleet_end_to_end_hold_resume_formation_land(browser, tmp_path):
         page.click("#fit")
         _shot(page, tmp_path, "console_live", docs=True)
         speed = "() => { const s = SDConsole.state.status; return s && s.health.centre_speed_mps; }"
-        # HOLD: the formation centre stops within 2 s (the plan takes effect 0.3 s after it is sent, then brakes)
+        # HOLD: the formation centre stops (the plan takes effect 0.3 s after it is sent, then brakes
+        # from 3 m/s: about 1.6 s of flight; the wait allows a busy machine's SITL under real time)
         page.click("#cmd-hold")
         expect(page.locator("#cmdlog")).to_contain_text("HOLD sent")
-        page.wait_for_function(f"() => ({speed})() !== null && ({speed})() < 0.1", timeout=3_000)
+        page.wait_for_function(f"() => ({speed})() !== null && ({speed})() < 0.1", timeout=8_000)
         # RESUME: it moves on
         page.click("#cmd-resume")
         page.wait_for_function(f"() => ({speed})() > 0.5", timeout=10_000)

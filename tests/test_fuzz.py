@@ -20,5 +20,5 @@ def test_short_fuzz_run_crashes_nothing_and_spares_untouched_vehicles(tmp_path):
     assert sum(report.per_port.values()) == 30_000 and len(report.per_port) == 6
     assert report.max_heartbeat_gap_s < 1.0, report
     # loose here (a shared CI machine); `make fuzz` holds the bars: RTF >= 0.99, RSS < 5 %
-    assert report.rtf is not None and report.rtf >= 0.9, report
+    assert report.rtf is not None and report.rtf >= 0.75, report
     assert report.rss_growth < 0.2, report

@@ -179,11 +179,11 @@ def test_an_exchange_begun_before_the_ticks_goes_on_with_them(link):
     ap, v = link
 
     async def main():
-        task = asyncio.ensure_future(v.command(ARM, [1.0], timeout_s=0.05, retries=2))
+        task = asyncio.ensure_future(v.command(ARM, [1.0], timeout_s=0.5, retries=2))
         await _turns()
         assert [c.command for c in _commands(ap)] == [ARM]  # sent at once: no ticks yet
         v.tick_aligned = True  # TickPath.attach
-        for _ in range(300):  # its wall-clock try times out (0.05 s): the resend is queued...
+        for _ in range(300):  # its wall-clock try times out (0.5 s): the resend is queued...
             if v.ep.pending:
                 break
             await asyncio.sleep(0.01)

@@ -194,8 +194,9 @@ def test_offboard_loss_flies_the_setpoint_for_com_of_loss_t_then_holds_and_never
             elif m.get_type() == "HEARTBEAT" and m.custom_mode == hold and "hb" not in first:
                 first["hb"], hb = time.monotonic(), m
         assert hb is not None and hb.system_status == 5  # CRITICAL: in failsafe
-        assert "text" in first and first["text"] - t_stop <= 0.5 + 0.2
-        assert first["hb"] - t_stop <= 0.5 + HEARTBEAT_PERIOD_S + 0.2
+        # (wall-clock slack for a SITL thread that shares the GIL with this test on a busy machine)
+        assert "text" in first and 0.5 - 0.1 <= first["text"] - t_stop <= 0.5 + 0.5
+        assert first["hb"] - t_stop <= 0.5 + HEARTBEAT_PERIOD_S + 0.5
         # Hold for ever: a few seconds on, still Hold and in the air
         assert c.wait("HEARTBEAT", lambda m: m.custom_mode != PX4.custom_mode(Mode.HOLD), 4) is None
         assert sitl.autopilots[k].mode == Mode.HOLD and not sitl.autopilots[k].landed
