@@ -108,7 +108,7 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
     from sim_bridge.reports.summary import summary_lines
     from sim_bridge.runs.rundir import RunDirError, interrupted_note, prepare_run_dir
     from sim_bridge.runs.simulate import simulate
-    from sim_bridge.runs.sweep import SweepError, run_sweep, write_results
+    from sim_bridge.runs.sweep import MAX_SEEDS, SweepError, run_sweep, write_results
     from sim_bridge.scenario import load_scenario
 
     stem = Path(args.config).stem
@@ -124,6 +124,8 @@ def _cmd_sweep(args: argparse.Namespace) -> int:
             return 0 if metrics.passed else 1
         if args.seeds < 1 or args.workers < 1:
             raise ValueError("--seeds and --workers must be at least 1")
+        if args.seeds > MAX_SEEDS:
+            raise ValueError(f"--seeds {args.seeds}: at most {MAX_SEEDS:,} in one sweep (split it with --first-seed)")
         if args.batch < 1:
             raise ValueError("--batch must be at least 1")
         first = cfg.seed if args.first_seed is None else args.first_seed

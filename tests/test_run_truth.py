@@ -63,6 +63,17 @@ def test_a_non_empty_out_is_refused_and_kept_unless_overwrite_clears_it(tmp_path
     assert sorted(p.name for p in out.iterdir()) == [MARKER]
 
 
+def test_a_run_that_wrote_nothing_leaves_a_directory_the_same_command_takes_again(tmp_path):
+    """A run refused at start (a port in use) or interrupted before writing leaves only the
+    marker, and says it wrote nothing: the same command then goes ahead without --overwrite."""
+    out = prepare_run_dir(tmp_path / "run")
+    assert sorted(p.name for p in out.iterdir()) == [MARKER]
+    assert prepare_run_dir(out) == out
+    (out / "metrics.json").write_text("{}")  # but one file more is a previous run's
+    with pytest.raises(RunDirError, match="not empty"):
+        prepare_run_dir(out)
+
+
 def test_overwrite_clears_only_run_directories(tmp_path):
     junk = tmp_path / "notes"
     junk.mkdir()

@@ -452,6 +452,15 @@ def test_ctrl_c_during_start_up_imports_is_one_line_and_exit_130(monkeypatch, ca
     assert err == "swarmdrop: interrupted"
 
 
+def test_a_sweep_of_a_billion_seeds_is_refused_before_anything_is_built(tmp_path, capsys):
+    # (it used to build the list of seeds first: 24 GB, then the kernel's OOM killer, no message)
+    out = tmp_path / "sw"
+    assert main_or_fail(["sweep", str(SMALL6), "--seeds", "1000000000", "--workers", "1", "--quiet",
+                         "--out", str(out)]) == 2
+    assert "--seeds 1000000000: at most 100,000 in one sweep" in capsys.readouterr().err
+    assert not out.exists()
+
+
 def test_ctrl_c_during_a_sweep_says_what_was_written(tmp_path, monkeypatch, capsys):
     import sim_bridge.runs.sweep as sweep
     from swarmdrop.cli import EXIT_INTERRUPTED

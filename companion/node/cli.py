@@ -71,7 +71,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="the 32-byte signing key (64 hex digits) in a file only its owner can read; needs "
                         "--signing optional|require (default none)")
     p.add_argument("--stats", default=None, metavar="FILE",
-                   help="write statistics (latency, CPU, link counters) to this JSON every 5 s and at exit; its "
+                   help="write statistics (latency, CPU, link counters) to this JSON every 10 s and at exit; its "
                         "directory must exist (default none)")
     p.add_argument("--set-loss-action", choices=("hold", "land"), default=None,
                    help="set what the autopilot does when this companion stops, before flight: hold (PX4 "

@@ -90,7 +90,8 @@ def _refuse_to_clear(path: Path) -> str | None:
 def prepare_run_dir(out_dir: str | Path, overwrite: bool = False) -> Path:
     """Make out_dir ready for a new run and return it resolved.
 
-    A missing directory is created; an empty one is used as it is; a non-empty one is
+    A missing directory is created; an empty one (or one holding only the MARKER: a run
+    that wrote nothing) is used as it is; a non-empty one is
     refused, or with overwrite cleared first if it holds only run artefacts (never a
     directory with anything else in it, nor a source tree). A protected directory
     (protected_why: the root, a system temporary directory, the home or current
@@ -107,7 +108,9 @@ def prepare_run_dir(out_dir: str | Path, overwrite: bool = False) -> Path:
     if why is not None:
         raise RunDirError(f"--out {out_dir}: cannot be a run directory: {why}; give the run a directory of its own, "
                           f"e.g. --out {path / 'run'}")
-    if path.is_dir() and any(path.iterdir()):
+    # (a directory holding only the MARKER is a run that wrote nothing: failed at start or was
+    # interrupted, and said so; it is used as it is)
+    if path.is_dir() and any(child.name != MARKER for child in path.iterdir()):
         if not overwrite:
             raise RunDirError(f"--out {out_dir}: the directory is not empty (a previous run?); pass --overwrite to "
                               "clear it first, or choose another --out")

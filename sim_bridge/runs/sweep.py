@@ -68,6 +68,10 @@ class SweepRun:
         return self.ok and self.mission_completed and self.collisions == 0
 
 
+MAX_SEEDS = 100_000
+"""Most seeds one sweep takes (`swarmdrop sweep --seeds`): their results are held and written
+together (about 1 kB a seed), and 100,000 paper_40 runs are already days of 2 cores' time."""
+
 MAX_BATCH = 5
 """Most seeds flown side by side in one process (headless.run_batch). The per-tick
 Python cost is shared (a paper_40 run: 3.7 s alone, 2.6 s in a batch of 5 or 10) and
