@@ -368,6 +368,32 @@ async def test_server_guards_host_origin_and_hostile_page_messages():
         await server.close()
 
 
+async def test_api_status_follows_the_swarm_with_no_page_open():
+    """A script polling /api/status (no browser) reads the swarm as it is now: the frame loop
+    refreshes the status only for open pages, and /api/status once cached it for good."""
+    aiohttp = pytest.importorskip("aiohttp")
+    mission = load_mission(SMALL6)
+    src, model = _source(mission)
+    from swarmdrop.console.feeds import LiveFeed
+
+    server = await _serve(LiveFeed(mission, model, src))
+    base = f"http://127.0.0.1:{server.port}"
+    try:
+        async with aiohttp.ClientSession() as http:
+            async with http.get(base + "/api/status") as r:
+                assert (await r.json())["health"]["heard"] == 0
+            _send(src.ep.link.local_port, state_frame(0, E_S), state_frame(1, E_S), state_frame(2, E_S))
+            deadline = time.monotonic() + 5
+            while True:  # polled, as a health script does (a status period is 0.5 s)
+                async with http.get(base + "/api/status") as r:
+                    if (await r.json())["health"]["heard"] == 3:
+                        break
+                assert time.monotonic() < deadline, "/api/status never showed the states sent"
+                await asyncio.sleep(0.1)
+    finally:
+        await server.close()
+
+
 # ---------------------------------------------------------------------------- commands on the wire
 def test_commands_are_checked_signed_and_sent_as_plans(tmp_path):
     from companion.commands import PlanAssembler

@@ -107,6 +107,8 @@ class ConsoleServer:
         self._seq = 0
         self._meta = ""
         self._status = ""
+        self._status_at = -math.inf
+        """Loop time the status text was made, s (_fresh_status)."""
         self.bad_requests = 0
         self.refused_origin = 0
         self.frame_errors = 0
@@ -165,10 +167,16 @@ class ConsoleServer:
         return web.Response(text=json_text(self.feed.meta()), content_type="application/json")
 
     async def _api_status(self, request: web.Request) -> web.Response:
-        if not self._status:
+        # Made afresh at most once a status period: the frame loop only refreshes it while a
+        # page is open, and a script polling health must not read a frozen snapshot as news.
+        if asyncio.get_running_loop().time() - self._status_at >= 1.0 / self.status_rate:
             snap, _ = self.feed.snapshot()
-            self._status = json_text(self.feed.status(snap))
+            self._set_status(snap)
         return web.Response(text=self._status, content_type="application/json")
+
+    def _set_status(self, snap) -> None:
+        self._status = json_text(self.feed.status(snap))
+        self._status_at = asyncio.get_running_loop().time()
 
     # ---- websocket -----------------------------------------------------------------
     def _same_origin(self, request: web.Request) -> bool:
@@ -248,7 +256,7 @@ class ConsoleServer:
     # ---- the loops -----------------------------------------------------------------
     def _push_status(self, now: bool = False) -> None:
         snap, _ = self.feed.snapshot()
-        self._status = json_text(self.feed.status(snap))
+        self._set_status(snap)
         for p in self.pages:
             p.status = self._status
             p.wake.set()
@@ -278,7 +286,7 @@ class ConsoleServer:
                             p.texts.append(meta)
                             p.wake.set()
                     if self.pages:
-                        self._status = json_text(self.feed.status(snap))
+                        self._set_status(snap)
                         for p in self.pages:
                             p.status = self._status
                             p.wake.set()
