@@ -207,10 +207,13 @@ RECORD_BYTES_PER_TICK = 1000
 
 def ends_landed(cfg: ScenarioConfig) -> bool:
     """The run ends with every vehicle landing: mission.phases.land_after_hover_s, or a
-    `commands:` entry that lands everyone (LAND without vehicles, RTL). Such a run is complete
-    when every counted vehicle is down, and its formation is judged before the landing."""
+    `commands:` entry that lands everyone (LAND without vehicles or naming every one, RTL). Such
+    a run is complete when every counted vehicle is down, and its formation is judged before
+    the landing."""
+    every = set(range(1, cfg.mission.n_vehicles + 1))  # (commands name vehicles 1-based)
     return cfg.mission.phases.land_after_hover_s is not None or any(
-        e.kind == "rtl" or (e.kind == "land" and e.vehicles is None) for e in cfg.commands)
+        e.kind == "rtl" or (e.kind == "land" and (e.vehicles is None or set(e.vehicles) >= every))
+        for e in cfg.commands)
 
 
 def record_bytes(cfg: ScenarioConfig) -> float:

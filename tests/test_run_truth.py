@@ -238,3 +238,33 @@ def test_a_headless_mission_that_lands_completes_when_every_vehicle_is_down(tmp_
     assert m["formation_deviation"]["final_max_m"] < data["completion_tol_m"]  # judged before the descent
     with np.load(out / "telemetry.npz") as z:
         assert z["down"][-1].all() and np.all(np.abs(z["pos_ned_m"][-1, :, 2]) < 0.05)
+
+
+def test_a_mission_that_holds_station_ends_when_swarm_commands_have_landed_every_vehicle(tmp_path):
+    """A station-keeping mission whose vehicles are all landed by swarm commands before it
+    completes (here two LANDs, neither naming every vehicle: as an operator's LAND from the
+    console, which the scenario was not written with) is over: the run ends once every vehicle
+    is down and disarmed, says so, and does not call the mission complete. (It used to fly on
+    to duration_s and report only "mission complete at: n/a".) A LAND naming every vehicle is
+    a mission that ends landed, as a LAND without vehicles."""
+    from sim_bridge.scenario import ends_landed, load_scenario
+
+    cfg = quick_config(tmp_path)
+    data = yaml.safe_load(cfg.read_text())
+    data["duration_s"] = 150.0
+    data["commands"] = [{"t_s": 30.0, "kind": "land", "vehicles": [1]}, {"t_s": 32.0, "kind": "land", "vehicles": [2, 3]}]
+    cfg.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert not ends_landed(load_scenario(cfg))
+    out = tmp_path / "out"
+    r = cli("simulate", str(cfg), "--out", str(out), "--quiet", "--check")
+    assert r.returncode == 1, r.stdout + r.stderr  # not completed: --check fails
+    m = json.loads((out / "metrics.json").read_text())
+    landed = m["mission"]["landed_early_s"]
+    assert m["mission"]["completed"] is False and landed is not None and 32.0 < landed < 90.0
+    assert f"every vehicle landed and disarmed at {landed:.1f} s" in r.stdout
+    with np.load(out / "telemetry.npz") as z:  # the run ended completion_hold_s after the last was down
+        assert z["t_s"][-1] <= landed + data.get("completion_hold_s", 5.0) + 0.5
+        assert np.all(np.abs(z["pos_ned_m"][-1, :, 2]) < 0.05)
+    data["commands"] = [{"t_s": 30.0, "kind": "land", "vehicles": [3, 1, 2]}]
+    cfg.write_text(yaml.safe_dump(data, sort_keys=False))
+    assert ends_landed(load_scenario(cfg))

@@ -216,7 +216,8 @@ def compute_metrics(result: RunResult, launch_study: list[LaunchComparison] | No
         ),
         mission=MissionOutcome(completed=ended_early is None and not math.isnan(result.t_complete_s),
                                completion_time_s=_f(result.t_complete_s) if ended_early is None else None,
-                               ended_early=ended_early),
+                               ended_early=ended_early, landed_early_s=_f(result.t_landed_early_s)
+                               if math.isfinite(result.t_landed_early_s) else None),
         landing=landing(result),
         commands=commands_outcome(result),
         performance=Performance(

@@ -264,6 +264,10 @@ class RunResult:
     hover, where the formation is judged); NaN otherwise."""
     commands: list[CommandRecord] = field(default_factory=list)
     """The swarm commands of the run, in the order issued (empty without a schedule)."""
+    t_landed_early_s: float = math.nan
+    """A mission that holds station but whose every counted vehicle landed and disarmed
+    before it completed (a swarm LAND, e.g. an operator's from the console): when the last
+    was down; the run ends there. NaN otherwise."""
 
 
 
@@ -290,6 +294,9 @@ class MissionTracker:
         self.landing = ends_landed(cfg)
         """The mission ends in a landing: it is complete when every counted vehicle is down."""
         self.t_land_start = math.nan
+        self.t_landed_early = math.nan
+        """A mission that holds station: when every counted vehicle was down before it
+        completed (RunResult.t_landed_early_s)."""
         self.t_go_s = math.nan
         self.t_go_spread_s = math.nan
         self.updates = 0
@@ -305,7 +312,10 @@ class MissionTracker:
         A mission that hovers is complete when every counted vehicle hovers within
         completion_tol_m of its slot. A mission that lands (land_after_hover_s) is complete
         when every counted vehicle has landed and disarmed (down: (N,) bool, from the
-        autopilots); its formation is judged at the end of the hover (metrics).
+        autopilots); its formation is judged at the end of the hover (metrics). A mission
+        that hovers but whose every counted vehicle is landing and down before it completed
+        (a swarm LAND it was not written with, e.g. the operator's) is over, not complete:
+        True completion_hold_s after that too (t_landed_early; down is needed for it).
 
         counted: (N,) bool, the vehicles completion is judged on (default all); a fleet
         run leaves out vehicles whose agent has died (their autopilot holds and lands).
@@ -349,6 +359,9 @@ class MissionTracker:
                 self.t_complete = t_s
         else:
             judge = math.isnan(self.t_complete) and bool((self.phase[c] == _HOVER).all())
+            if math.isnan(self.t_complete) and math.isnan(self.t_landed_early) and down is not None \
+                    and bool((self.phase[c] == _LAND).all()) and bool(np.all(down[c])):
+                self.t_landed_early = t_s  # nothing left to fly: the run ends, the mission not completed
         if log or judge:  # the slots are only needed for these
             if slot_ned_m is not None:
                 slot = slot_ned_m
@@ -362,14 +375,16 @@ class MissionTracker:
             if judge and np.linalg.norm(state.pos_ned_m[c] - slot[c], axis=1).max() < self.cfg.completion_tol_m:
                 self.t_complete = t_s
         self.updates += 1
-        return not math.isnan(self.t_complete) and t_s >= self.t_complete + self.cfg.completion_hold_s
+        end = self.t_complete if math.isnan(self.t_landed_early) else self.t_landed_early
+        return not math.isnan(end) and t_s >= end + self.cfg.completion_hold_s
 
     def result(self, release_s: np.ndarray, release_pos_ned_m: np.ndarray, wall_s: float, sim_s: float,
                vehicle_steps: int, link: LinkStats, commands: list[CommandRecord] | None = None) -> "RunResult":
         return RunResult(self.cfg, self.mission, self.rec.arrays(), np.asarray(release_s, float),
                          np.asarray(release_pos_ned_m, float), self.phase_entry, self.safety, self.t_go_s,
                          self.t_go_spread_s, self.t_all_assembled, self.t_complete, wall_s, sim_s, vehicle_steps,
-                         link, self.failed_at_s.copy(), self.t_land_start, list(commands or []))
+                         link, self.failed_at_s.copy(), self.t_land_start, list(commands or []),
+                         self.t_landed_early)
 
 
 def save_log(result: RunResult, out_dir: Path) -> Path:
@@ -384,7 +399,7 @@ def save_log(result: RunResult, out_dir: Path) -> Path:
 
 
 _SCALARS = ("t_go_s", "t_go_spread_s", "t_all_assembled_s", "t_complete_s", "wall_s", "sim_s", "vehicle_steps",
-            "t_land_start_s")
+            "t_land_start_s", "t_landed_early_s")
 
 
 def save_run(result: RunResult, out_dir: Path) -> None:
@@ -434,4 +449,4 @@ def load_run(out_dir: Path, cfg: ScenarioConfig) -> RunResult:
                      data["phase_entry_s"], safety, scalar["t_go_s"], scalar["t_go_spread_s"],
                      scalar["t_all_assembled_s"], scalar["t_complete_s"], scalar["wall_s"], scalar["sim_s"],
                      info["vehicle_steps"], LinkStats.from_json(info["link"]), failed_at, scalar["t_land_start_s"],
-                     [CommandRecord.from_json(c) for c in info.get("commands", [])])
+                     [CommandRecord.from_json(c) for c in info.get("commands", [])], scalar["t_landed_early_s"])

@@ -144,6 +144,10 @@ class MissionOutcome:
     ended_early: str | None = None
     """"interrupted" (Ctrl-C) or "aborted" (no agent left to fly it): an early end is never a
     completion, whatever was reached before it. None for a run that ran its course."""
+    landed_early_s: float | None = None
+    """A mission that holds station: when every counted vehicle had landed and disarmed before
+    it completed (a swarm LAND it was not written with, e.g. an operator's); the run ended
+    there and the mission is not complete. None otherwise."""
 
 
 @dataclass(frozen=True)

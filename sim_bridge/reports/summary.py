@@ -34,7 +34,10 @@ def summary_lines(metrics: RunMetrics, out_dir: Path) -> list[str]:
         f" (max settle {fmt(s.max_settle_time_s, ' s', 2)}, max drift {fmt(s.max_drift_m, ' m', 2)})",
         f"  all assembled at:      {fmt(metrics.assembly.all_assembled_s, ' s', 1)};"
         f" transit start {fmt(metrics.assembly.transit_start_s, ' s', 1)}",
-        f"  mission complete at:   {fmt(metrics.mission.completion_time_s, ' s', 1)}",
+        f"  mission complete at:   {fmt(metrics.mission.completion_time_s, ' s', 1)}"
+        + (f" (every vehicle landed and disarmed at {metrics.mission.landed_early_s:.1f} s, before the mission "
+           "completed (landed by swarm commands, e.g. an operator's LAND); the run ended there)"
+           if metrics.mission.landed_early_s is not None else ""),
         f"  final max deviation:   {fmt(f.final_max_m, ' m', 4)}"
         + (" (at the end of the hover, before landing)" if metrics.landing is not None else ""),
         f"  min separation:        {fmt(sep.min_pair_distance_m, ' m')} (UAVs {sep.min_pair_vehicles},"

@@ -21,6 +21,7 @@ from typing import Callable, TextIO
 
 import numpy as np
 
+from companion.agent import Phase
 from companion.frames import geodetic_to_ned
 from companion.link.endpoints import MavEndpoint
 from companion.link.framing import signature_of
@@ -250,8 +251,10 @@ class SitlServer:
         if md is not None:  # vehicles whose agent fell silent are not waited for (their autopilot holds)
             silent_us = (self._unix_us(self.sim_s) - md.latest_stamp_us) > SILENT_AGENT_S * 1e6
             counted = ~(silent_us & (md.latest_stamp_us >= 0))
+        # (for a mission that lands; for one that holds station once every vehicle is landing, so
+        # that a swarm LAND it was not written with ends the run: MissionTracker.update)
         down = np.fromiter((ap.landed and not ap.armed for ap in self.autopilots), bool, self.n) \
-            if self.tracker.landing else None
+            if self.tracker.landing or (phase[slice(None) if counted is None else counted] == Phase.LAND).all() else None
         cmd = self.commands  # (with a schedule: judged against the plan's reference, and not done before it is)
         if self.tracker.update(self.sim_s, self.state, self.fleet.fleet_sp, released, phase, assembled, t_go,
                                counted, failed_at_s=self.rotor_faults.failed_at_s, down=down,
