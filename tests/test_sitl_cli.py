@@ -93,3 +93,18 @@ def test_cli_rejects_bad_config(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "sim_bridge.sitl", "--config", str(cfg)], cwd=REPO,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 2 and "no_such_field" in proc.stderr
+
+
+def test_cli_says_a_scenario_given_as_config_is_a_scenario():
+    proc = subprocess.run([sys.executable, "-m", "sim_bridge.sitl", "--config", "configs/small_6.yaml"], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and "pass it as --scenario configs/small_6.yaml" in proc.stderr, proc.stderr
+
+
+@pytest.mark.parametrize("flag", [["--record", "rec"], ["--stop-when-done"]])
+def test_cli_refuses_scenario_options_without_a_scenario(flag, tmp_path):
+    # (--stop-when-done used to be accepted and never stop: with no mission nothing is ever done)
+    args = [a if a != "rec" else str(tmp_path / "rec") for a in flag]
+    proc = subprocess.run([sys.executable, "-m", "sim_bridge.sitl", "--duration", "1", *args], cwd=REPO,
+                          capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 2 and f"{flag[0]} needs --scenario" in proc.stderr, proc.stderr

@@ -86,6 +86,17 @@ def _pick(value, default):
     return default if value is None else value
 
 
+def _looks_like_scenario(path: str) -> bool:
+    """The file is YAML with a top-level `mission:` (a scenario given to --config)."""
+    import yaml
+
+    try:
+        data = yaml.safe_load(open(path, encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        return False
+    return isinstance(data, dict) and "mission" in data
+
+
 def config_from_args(args) -> SitlConfig:
     """The SitlConfig from the command line: the --config file (or the defaults), its
     scenario section replaced by --scenario's, then the options given.
@@ -104,7 +115,13 @@ def config_from_args(args) -> SitlConfig:
     duration = getattr(args, "duration", None)
     if duration is not None and not (math.isfinite(duration) and duration > 0):
         raise ConfigError(f"--duration {duration:g}: must be a finite number of seconds above 0")
-    cfg = load_config(args.config)
+    try:
+        cfg = load_config(args.config)
+    except ConfigError as err:
+        if args.config and _looks_like_scenario(args.config):
+            raise ConfigError(f"{err}\n{args.config} is a scenario (it has a mission: section), not a SITL config "
+                              f"(docs/sitl.md): pass it as --scenario {args.config}") from None
+        raise
     sc = cfg.scenario
     if getattr(args, "scenario", None):
         sc = load_scenario(args.scenario, args.seed, runner="sitl", strict=getattr(args, "strict", False),
@@ -145,14 +162,15 @@ def run(args) -> int:
     from companion.config import ConfigError
     from sim_bridge.sitl.server import SitlServer  # heavy (numba) import only when running
 
+    for flag, given in (("--record", args.record), ("--stop-when-done", args.stop_when_done)):
+        if given and not args.scenario:  # (refused before any port is bound)
+            print(f"swarmdrop sitl: {flag} needs --scenario (a mission to record or to be done with)", file=sys.stderr)
+            return 2
     try:
         cfg = config_from_args(args)
         server = SitlServer(cfg, record=bool(args.record))
     except (ConfigError, ValueError, OSError) as exc:
         print(f"swarmdrop sitl: bad configuration: {exc}", file=sys.stderr)
-        return 2
-    if args.record and not args.scenario:
-        print("swarmdrop sitl: --record needs --scenario", file=sys.stderr)
         return 2
 
     def ready(s: SitlServer) -> None:
