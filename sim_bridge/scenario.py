@@ -247,6 +247,10 @@ def scenario_findings(cfg: ScenarioConfig, runner: Runner = "headless") -> list[
                            f"{'simulate' if runner == 'headless' else 'run' if runner == 'fleet' else 'sitl'}` flies at "
                            f"most {limit} ({why})"))
         return out  # the rest would cost O(N^2) for nothing
+    if runner == "headless" and m.launch != "carrier":  # (refused at load: before a run directory or a --live stream)
+        out.append(Finding("mission.launch", f"{m.launch!r}: the headless runner flies carrier launches only; fly a "
+                           "ground launch with `swarmdrop run` (the SITL and agents)"))
+        return out
     if runner == "fleet" and m.origin is None:
         out.append(Finding("mission.origin", "missing: every `swarmdrop agent` converts its autopilot's own EKF frame "
                            "to the mission frame through this geodetic origin (give lat_deg, lon_deg, alt_amsl_m)"))

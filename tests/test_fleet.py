@@ -630,7 +630,7 @@ def test_agents_that_give_up_on_a_stopped_sitl_after_completion_do_not_abort_the
     from sim_bridge.sitl.status import SitlStatus
 
     path = ROOT / "configs" / "ground_4.yaml"
-    fleet = Fleet(path, load_scenario(path), FleetOptions(out_dir=tmp_path, progress=False, figures=False))
+    fleet = Fleet(path, load_scenario(path, runner="fleet"), FleetOptions(out_dir=tmp_path, progress=False, figures=False))
     (tmp_path / "agents").mkdir()
     fleet.agents = [subprocess.Popen([sys.executable, "-c", "raise SystemExit(6)"]) for _ in range(fleet.n)]
     for p in fleet.agents:

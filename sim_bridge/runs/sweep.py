@@ -87,7 +87,8 @@ def _sweep_cfg(config_path: str, seed: int):
 
 
 def _crashed(seed: int, wall_s: float, err: BaseException) -> SweepRun:
-    return SweepRun(seed, False, wall_s, reason=f"{type(err).__name__}: {err}",
+    # (the reason on one line: it is a cell of runs.csv and of summary.md's table; the trace keeps the rest)
+    return SweepRun(seed, False, wall_s, reason=" ".join(f"{type(err).__name__}: {err}".split()),
                     trace="".join(traceback.format_exception(err)))
 
 
