@@ -313,6 +313,22 @@ def test_fleet_base_port_range_must_end_within_65535(tmp_path):
     assert not out.exists()  # refused before anything was made
 
 
+def test_a_console_port_in_use_is_refused_before_anything_starts(tmp_path):
+    # (an explicit --console-port that was taken used to warn and run on without the console)
+    import socket
+
+    from sim_bridge.runs.fleet import FleetOptions, run_fleet
+
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        out = tmp_path / "out"
+        with pytest.raises(ConfigError, match=rf"--console-port {port}: cannot listen there .*or 0 for any free one"):
+            run_fleet(SMALL6, FleetOptions(out_dir=out, console=True, console_port=port, progress=False, figures=False))
+        assert not out.exists()
+
+
 def test_run_cli_base_port_past_65535_exits_2_without_a_traceback(tmp_path):
     r = swarmdrop("run", str(SMALL6), "--base-port", "65530", "--out", str(tmp_path / "o"), "--quiet")
     assert r.returncode == 2 and "--base-port 65530" in r.stderr and not (tmp_path / "o").exists(), r.stderr

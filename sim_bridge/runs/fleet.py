@@ -49,7 +49,7 @@ from sim_bridge.runs.procs import (
     terminate_all,
 )
 from sim_bridge.scenario import ScenarioConfig, expected_end_s
-from sim_bridge.sitl.ports import find_free_udp_range
+from sim_bridge.sitl.ports import bind_tcp_port, find_free_udp_range
 from sim_bridge.sitl.status import SitlStatus
 
 NICE_MAX = 19
@@ -520,8 +520,9 @@ def run_fleet(config_path: str | Path, opts: FleetOptions, warn=None) -> tuple[F
 
     Raises:
         ConfigError: a bad or infeasible scenario; an option out of range (FleetOptions.check,
-            --base-port past 65535); or --kill-agent naming no vehicle of it, or a time at or
-            after its duration_s. All before anything is created or started.
+            --base-port past 65535); --kill-agent naming no vehicle of it, or a time at or
+            after its duration_s; or a --console-port that cannot be listened on. All before
+            anything is created or started.
         RunDirError: out_dir cannot be used (not empty without overwrite, not writable).
     """
     from companion.config import ConfigError
@@ -540,6 +541,12 @@ def run_fleet(config_path: str | Path, opts: FleetOptions, warn=None) -> tuple[F
         raise ConfigError(f"--kill-agent {k}@{t:g}: {t:g} s is at or after the run's duration_s ({cfg.duration_s:g} s "
                           f"in {config_path}): the agent would never be killed")
     check_base_port(n, opts.base_port)
+    if opts.console and opts.console_port:  # a port asked for by name must be free (0: any free one)
+        try:
+            bind_tcp_port(opts.console_port)
+        except OSError as err:
+            raise ConfigError(f"--console-port {opts.console_port}: cannot listen there ({err.strerror or err}); "
+                              "choose another port, or 0 for any free one") from None
     opts = dataclasses.replace(opts, out_dir=prepare_run_dir(opts.out_dir, opts.overwrite))
     fleet = Fleet(Path(config_path).resolve(), cfg, opts)
 

@@ -27,6 +27,18 @@ def bind_udp_range(base: int, count: int, host: str = "127.0.0.1") -> None:
             s.close()
 
 
+def bind_tcp_port(port: int, host: str = "127.0.0.1") -> None:
+    """Check that TCP port on host can be listened on now (bound and closed, with
+    SO_REUSEADDR as a server binds: a port in TIME_WAIT counts as free).
+
+    Raises:
+        OSError: it cannot be bound (in use, no such address, not allowed).
+    """
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        s.bind((host, port))
+
+
 def find_free_udp_range(count: int, seed: int, attempts: int = 60) -> int:
     """A base port b with b .. b+count-1 all free on 127.0.0.1, tried at seeded random
     places between 20000 and 60000.
