@@ -88,11 +88,11 @@ def _pick(value, default):
 
 def _looks_like_scenario(path: str) -> bool:
     """The file is YAML with a top-level `mission:` (a scenario given to --config)."""
-    import yaml
+    from companion.config import ConfigError, read_yaml
 
     try:
-        data = yaml.safe_load(open(path, encoding="utf-8"))
-    except (OSError, UnicodeDecodeError, yaml.YAMLError):
+        data = read_yaml(path)
+    except ConfigError:
         return False
     return isinstance(data, dict) and "mission" in data
 
