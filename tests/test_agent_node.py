@@ -3,6 +3,7 @@ imports onboard, the swarm link's input rules, and a ground launch against the S
 from __future__ import annotations
 
 import json
+import math
 import os
 import select
 import signal
@@ -356,6 +357,7 @@ def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
     # what crossed the link: arming and the autopilot's take-off command, accepted, before any setpoint
     conn = mavutil.mavlink_connection(str(tlog))
     acks, first_sp_t, cmds, climbed_t, modes, last_att_t = {}, None, [], None, [], None
+    last_sp_t = -math.inf
     while True:
         m = conn.recv_match(type=["COMMAND_LONG", "COMMAND_ACK", "SET_POSITION_TARGET_LOCAL_NED",
                                   "LOCAL_POSITION_NED", "HEARTBEAT", "ATTITUDE"])
@@ -367,12 +369,13 @@ def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
             cmds.append((t, m.command))
         elif typ == "COMMAND_ACK":
             acks.setdefault(m.command, []).append(m.result)
-        elif typ == "SET_POSITION_TARGET_LOCAL_NED" and first_sp_t is None:
-            first_sp_t = t
+        elif typ == "SET_POSITION_TARGET_LOCAL_NED":
+            first_sp_t = t if first_sp_t is None else first_sp_t
+            last_sp_t = t
         elif typ == "LOCAL_POSITION_NED" and climbed_t is None and m.z < -(mcfg.takeoff_alt_m - 0.2):
             climbed_t = t
         elif typ == "HEARTBEAT" and m.get_srcComponent() == 1:
-            modes.append(m.custom_mode)
+            modes.append((t, m.custom_mode))
         elif typ == "ATTITUDE":
             last_att_t = t
     conn.close()
@@ -381,9 +384,12 @@ def test_ground_launch_takes_off_and_flies_to_its_slot(dialect, tmp_path):
     t_takeoff = next(t for t, c in cmds if c == 22)
     assert climbed_t is not None and first_sp_t is not None
     assert t_takeoff <= climbed_t < first_sp_t  # the autopilot climbed on its own take-off
+    shown = [mode for _, mode in modes]
     if dialect == "px4":
-        assert d.custom_mode(Mode.TAKEOFF) in modes and d.custom_mode(Mode.HOLD) in modes
-    assert modes[-1] == d.custom_mode(Mode.OFFBOARD)
+        assert d.custom_mode(Mode.TAKEOFF) in shown and d.custom_mode(Mode.HOLD) in shown
+    # flown in offboard to the agent's last setpoint (after it the SITL may stop late on a busy
+    # machine, and PX4's COM_OF_LOSS_T failsafe then shows Hold: not the agent's doing)
+    assert [mode for t, mode in modes if t <= last_sp_t][-1] == d.custom_mode(Mode.OFFBOARD)
     stats = json.loads((tmp_path / "agent.json").read_text())
     assert stats["phase"] == Phase.HOVER.name and stats["autopilot"]["dialect"] == dialect
     assert stats["event_loop"].split()[0] == ("uvloop" if dialect == "px4" else "asyncio")
