@@ -241,6 +241,10 @@ def test_swarm_link_input_rules_over_udp():
         _poll_until(link, lambda: link.rejected == 1)
         assert np.isnan(view.stamp_s[0]).all()
         link.set_epoch(EPOCH_UNIX_S)
+        # until the first tick tells the link the vehicle's clock, every state is too early to trust
+        tx.state(2, e_us + 1_000_000, 1, (7, 7, 7))
+        _poll_until(link, lambda: link.future == 1)
+        link.now_us = e_us + 5_100_000  # (the tick path: the vehicle's clock at its newest tick)
         # the own id from someone else is an identity conflict (kept apart, never as a neighbour)
         tx.state(own + 1, e_us + 5_000_000, own, (9, 9, 9))
         _poll_until(link, lambda: link.conflicts == 1)
@@ -271,6 +275,14 @@ def test_swarm_link_input_rules_over_udp():
         assert view.stamp_s[0, 1] == pytest.approx(5.1) and view.pos_ned_m[0, 1].tolist() == [4, 5, 6]
         assert np.isnan(view.stamp_s[0, [0, 2, 3]]).all()  # nobody else was ever stored
         assert link.rejected == 3 and link.conflicts == 1
+        # a state stamped an hour ahead (a wrong clock, a forgery) is dropped and counted: kept, it
+        # would have hidden every real state of vehicle 1 for an hour as older; 0.4 s ahead is kept
+        tx.state(2, e_us + 3_605_000_000, 1, (9, 9, 9))
+        _poll_until(link, lambda: link.future == 2)
+        assert view.stamp_s[0, 1] == pytest.approx(5.1) and link.counters().future == 2
+        tx.state(2, e_us + 5_500_000, 1, (3, 3, 3))
+        _poll_until(link, lambda: link.states_in == 5)
+        assert view.stamp_s[0, 1] == pytest.approx(5.5) and view.pos_ned_m[0, 1].tolist() == [3, 3, 3]
         # the radio's end-of-tick marker is taken whoever signs it
         tx.ep.queue_fields(md.MAVLINK_MSG_ID_SWARMDROP_TICK, [e_us + 5_100_000], tx.dest, sysid=255, compid=0)
         tx.ep.flush()

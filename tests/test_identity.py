@@ -95,6 +95,7 @@ def test_a_state_claiming_the_receivers_id_is_a_conflict_counted_logged_flagged_
     rx = _endpoint(own_id + 1)
     link = SwarmLink(rx, own_id, [], views["conflict"])
     link.set_epoch(EPOCH_UNIX_S)
+    link.now_us = E_US + 3_600_000_000  # (the tick path's clock: every state here is of the past)
     forger = _endpoint(2)
     intruder = slot + np.array([1.5, 0.0, 0.0])  # 1.5 m north of the own vehicle, inside the APF influence
     caplog.set_level(logging.INFO, logger="swarmdrop.swarm")
@@ -142,6 +143,7 @@ def test_own_echo_is_not_a_conflict_but_the_same_sysid_elsewhere_is():
     me = ("127.0.0.1", rx.link.local_port)
     link = SwarmLink(rx, own_id, [me], view)  # we are our own peer: every publication comes back
     link.set_epoch(EPOCH_UNIX_S)
+    link.now_us = E_US + 3_600_000_000  # (the tick path's clock: every state here is of the past)
     mission = Mission(load_mission_file(GROUND4).mission)
     agent = Agent(mission, np.array([own_id]))
     twin = _endpoint(own_id + 1)

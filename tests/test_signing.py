@@ -261,6 +261,7 @@ def test_swarm_port_with_signing_required_drops_hostile_states(key_file):
     view = view_for(4)
     link = SwarmLink(ep, 0, [], view)
     link.set_epoch(time.time() - 10.0)
+    link.now_us = int(time.time() * 1e6) + 60_000_000  # (the tick path's clock)
     try:
         def state(vid: int, t_us: int) -> object:
             return swarmdrop.MAVLink_swarmdrop_state_message(t_us, 0, 1.0, 2.0, -5.0, 0.0, 0.0, 0.0,

@@ -43,6 +43,7 @@ class _Rx:
         self.ep = _endpoint(1, signing)
         self.link = SwarmLink(self.ep, 0, [], view_for(m.n), None, PlanAssembler.for_mission(m, 0.0), self.got.append)
         self.link.set_epoch(EPOCH_UNIX_S)
+        self.link.now_us = int(EPOCH_UNIX_S * 1e6) + 3_600_000_000  # (the tick path's clock)
         self.addr = ("127.0.0.1", self.ep.link.local_port)
 
     def poll_until(self, cond, timeout_s: float = 3.0) -> None:

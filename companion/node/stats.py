@@ -284,6 +284,8 @@ class SwarmLinkStats:
     """Neighbour states that passed the input rules (companion.node.swarmlink)."""
     rejected: int = 0
     """States dropped by them (wrong sender, slot, stamp, phase, or before the clock was known)."""
+    future: int = 0
+    """States dropped for a stamp over 0.5 s ahead of the vehicle's clock (FUTURE_TOLERANCE_US)."""
     bad_frames: int = 0
     stale_or_duplicate: int = 0
     """Accepted states older than, or as old as, the one already held."""

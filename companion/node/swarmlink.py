@@ -44,6 +44,13 @@ _TICK = MsgId.SWARMDROP_TICK
 _PLAN_IDS = frozenset((int(MsgId.SWARMDROP_PLAN), int(MsgId.SWARMDROP_SLOTS)))
 _POS = struct.Struct("<3f")
 ECHO_MEMORY = 64
+FUTURE_TOLERANCE_US = 500_000
+"""A state stamped more than this ahead of the vehicle's own clock (its autopilot's, at its
+newest tick) is dropped and counted (`future`), µs. Kept, it would be the newest for as long
+as it is early, and every real state of that vehicle until then would be dropped as older:
+one datagram with a stamp an hour ahead (a wrong clock, or anyone who can reach the port
+without signing) would hide the vehicle behind a frozen copy for an hour. Vehicles' GNSS
+clocks agree to milliseconds; a state may be one tick (20 ms) ahead of the last tick."""
 """Own publications remembered to recognise their echoes (6.4 s at 10 Hz)."""
 CONFLICT_LOG_PERIOD_S = 10.0
 """At most one conflict log line per sender per this many (wall) seconds after the first."""
@@ -60,7 +67,10 @@ class SwarmLink:
 
     The mission epoch (Unix time of mission time 0; message times are Unix µs) is None
     until the agent knows its autopilot's clock (set_epoch): states heard before then are
-    dropped (counted as rejected), never stored with a stamp in another time base.
+    dropped (counted as rejected), never stored with a stamp in another time base. Nor is a
+    state stamped over FUTURE_TOLERANCE_US ahead of `now_us`, the vehicle's clock at its
+    newest tick (the tick path sets it; counted as future, and until the first tick every
+    state is dropped so).
     """
 
     def __init__(self, endpoint: MavEndpoint, vehicle_id: int, peers: list[tuple[str, int]], view: SwarmView,
@@ -77,6 +87,10 @@ class SwarmLink:
         """time_usec of the newest SWARMDROP_TICK from the medium."""
         self.states_in = 0
         self.rejected = 0
+        self.future = 0
+        """States dropped for a stamp over FUTURE_TOLERANCE_US ahead of now_us."""
+        self.now_us: int | None = None
+        """Unix µs of the vehicle's own clock at its newest tick (set by the tick path)."""
         self.sent = 0
         self.own_echoes = 0
         """States of our own that came back (a peer or medium echoing them): ignored."""
@@ -107,9 +121,13 @@ class SwarmLink:
         """Take everything waiting; returns the number of states applied to the view."""
         applied = 0
         view, own, n, epoch, sysids = self.view, self.vehicle_id, self.view.n_vehicles, self.epoch_us, self.sysids
+        latest_us = -1 if self.now_us is None else self.now_us + FUTURE_TOLERANCE_US
         for msgid, sysid, _compid, w, addr in self.ep.poll_raw():
             if msgid == _STATE:
                 # wire order: time_usec, t_go_usec, x, y, z, vx, vy, vz, q[4], phase, flags, vehicle_id
+                if w[0] > latest_us and epoch is not None:  # (no epoch: rejected below)
+                    self.future += 1
+                    continue
                 j = w[14]
                 if j == own and epoch is not None and w[12] < PHASE_COUNT:
                     self._own_id_claimed(sysid, addr, w, epoch)
@@ -217,7 +235,8 @@ class SwarmLink:
         """The statistics' swarm section."""
         ep = self.ep
         asm = self.assembler
-        return SwarmLinkStats(states_in=self.states_in, rejected=self.rejected, bad_frames=ep.bad_frames,
+        return SwarmLinkStats(states_in=self.states_in, rejected=self.rejected, future=self.future,
+                              bad_frames=ep.bad_frames,
                               stale_or_duplicate=int(self.view.ignored_old[0]), published=self.sent,
                               bytes_out=ep.link.bytes_out, bytes_in=ep.link.bytes_in,
                               plan_frames_in=self.plan_frames_in, plans_in=self.plans_in,

@@ -223,6 +223,7 @@ class TickPath:
             return  # ticks start after set-up, which waits for SYSTEM_TIME
         t = (unix_us - self.epoch_us) * 1e-6
         lp = lpn.values
+        self.swarm.now_us = unix_us  # (the swarm link drops states stamped ahead of this)
         publish = swarm_due(unix_us, self.swarm_rate_hz, cfg.vehicle_id, self.period_us)
         k = tick_index(unix_us, self.period_us)
         # Plans on the ticks it publishes (vehicle-staggered, as swarm_due) and every plan_every-th,
