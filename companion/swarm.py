@@ -36,6 +36,13 @@ INTRUDER_SLOTS = 4
 PHASE_COUNT = 7
 """Phases are 0 .. PHASE_COUNT - 1 (companion.agent.Phase; a test keeps them equal). A state
 with any other phase is hostile or corrupt and is dropped: the agent indexes by phase."""
+FUTURE_TOLERANCE_S = 0.5
+"""A state stamped more than this ahead of the receiver's own clock is dropped (an agent's
+swarm link: companion.node.swarmlink), s. Kept, it would be the newest for as long as it is early,
+and every real state of its vehicle until then would be dropped as older: one datagram
+stamped an hour ahead (a wrong clock, or anyone who can reach an unsigned swarm port) would
+hide the vehicle behind a frozen copy for an hour. GNSS clocks agree to milliseconds; a
+state may be one tick (20 ms) ahead of the receiver's last tick."""
 
 
 @dataclass

@@ -219,6 +219,60 @@ def test_sitl_radio_refuses_a_second_sender_of_one_vehicle_id():
         radio.close()
 
 
+def test_a_signed_sitl_radio_lets_no_unsigned_stranger_claim_a_vehicle_id():
+    """Under signing the radio checks what it takes: an unsigned state sent first for vehicle 0
+    (a stranger) is dropped and counted, claims nothing, and the real agent's signed states own
+    the id and reach the others. (The radio used to give the id to the first sender, signed or
+    not, and refused the real vehicle's states as an identity conflict: it vanished from the
+    swarm.) A replayed signed state is dropped too."""
+    from companion.link.signing import Signing
+    from sim_bridge.sitl.medium import Medium
+
+    n, key = 3, bytes(range(32))
+    codec = Codec(md)
+    socks = [socket.socket(socket.AF_INET, socket.SOCK_DGRAM) for _ in range(n + 1)]
+    for s in socks:
+        s.bind(("127.0.0.1", 0))
+        s.setblocking(False)
+    owner, agent1, agent2, stranger = socks
+    radio = Medium(n, LinkConfig(), seed=1, epoch_unix_s=EPOCH_UNIX_S, bind=("127.0.0.1", 0),
+                   agent_ports=[s.getsockname()[1] for s in socks[:n]],
+                   signing=Signing("require", key, link_id=200, crc_extra=codec.crc_extra))
+    signer = Signing("require", key, link_id=1, crc_extra=codec.crc_extra)
+    dest = ("127.0.0.1", radio.port)
+
+    def frame(stamp_us: int, x: float) -> bytes:
+        return md.MAVLink_swarmdrop_state_message(stamp_us, 0, x, 0, -5, 0, 0, 0, Q_LEVEL, 2, 2, 0).pack(
+            md.MAVLink(None, srcSystem=1, srcComponent=191))
+
+    try:
+        stranger.sendto(frame(E_US + 1_000_000, 7.0), dest)  # first, unsigned
+        signed = signer.sign(frame(E_US + 1_000_000, 1.0))
+        owner.sendto(signed, dest)
+        owner.sendto(signed, dest)  # a replay of it
+        deadline = time.monotonic() + 5.0
+        while int(radio.states_in[0]) + radio.unverified < 3 and time.monotonic() < deadline:
+            radio.receive()  # non-blocking: polled with a deadline until all three datagrams are in
+        assert radio.unverified == 2 and radio.states_in.tolist() == [1, 0, 0] and radio.id_conflicts == 0
+        assert radio.src[0] == owner.getsockname()
+        radio.schedule(1.0, np.zeros((n, 3)))
+        radio.deliver(1.0, np.ones(n, bool), tick_marker=False)
+        got = {}
+        deadline = time.monotonic() + 5.0
+        while len(got) < 2 and time.monotonic() < deadline:
+            select.select([agent1, agent2], [], [], 0.1)
+            for k, sock in ((1, agent1), (2, agent2)):
+                try:
+                    got[k] = sock.recv(65536)
+                except BlockingIOError:
+                    pass
+        assert got == {1: signed, 2: signed}  # the owner's state, unchanged, signature and all
+    finally:
+        for s in socks:
+            s.close()
+        radio.close()
+
+
 # ---------------------------------------------------------------------------- the agent says what it waits for
 @pytest.mark.timeout(60)
 def test_waiting_for_an_autopilot_is_logged_with_the_url_and_the_error_names_it(tmp_path):

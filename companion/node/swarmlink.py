@@ -35,7 +35,7 @@ from companion.commands import PlanAssembler, SwarmPlan
 from companion.link.endpoints import MavEndpoint
 from companion.link.enums import MsgId
 from companion.node.stats import SwarmLinkStats
-from companion.swarm import INTRUDER_SLOTS, PHASE_COUNT, SwarmStates, SwarmView
+from companion.swarm import FUTURE_TOLERANCE_S, INTRUDER_SLOTS, PHASE_COUNT, SwarmStates, SwarmView
 
 log = logging.getLogger("swarmdrop.swarm")
 
@@ -44,13 +44,8 @@ _TICK = MsgId.SWARMDROP_TICK
 _PLAN_IDS = frozenset((int(MsgId.SWARMDROP_PLAN), int(MsgId.SWARMDROP_SLOTS)))
 _POS = struct.Struct("<3f")
 ECHO_MEMORY = 64
-FUTURE_TOLERANCE_US = 500_000
-"""A state stamped more than this ahead of the vehicle's own clock (its autopilot's, at its
-newest tick) is dropped and counted (`future`), µs. Kept, it would be the newest for as long
-as it is early, and every real state of that vehicle until then would be dropped as older:
-one datagram with a stamp an hour ahead (a wrong clock, or anyone who can reach the port
-without signing) would hide the vehicle behind a frozen copy for an hour. Vehicles' GNSS
-clocks agree to milliseconds; a state may be one tick (20 ms) ahead of the last tick."""
+FUTURE_TOLERANCE_US = round(FUTURE_TOLERANCE_S * 1e6)
+"""companion.swarm.FUTURE_TOLERANCE_S in the wire's µs."""
 """Own publications remembered to recognise their echoes (6.4 s at 10 Hz)."""
 CONFLICT_LOG_PERIOD_S = 10.0
 """At most one conflict log line per sender per this many (wall) seconds after the first."""

@@ -121,7 +121,10 @@ class Medium:
                  relay_frames_per_s: float = RELAY_FRAMES_PER_S):
         self.signing = signing
         """Signs the radio's own end-of-tick marker when the fleet is signed (agents'
-        states are forwarded as they were sent, signatures and all)."""
+        states are forwarded as they were sent, signatures and all), and checks every frame
+        the radio takes: one that signing would drop (unsigned under `require`, forged,
+        replayed) is dropped and counted (`unverified`), before it could claim a vehicle's
+        id, move the radio's view of a vehicle, or use the command budget."""
         self.n = n
         self.radio = RadioModel(link, seed)
         self.epoch_unix_s = epoch_unix_s
@@ -168,6 +171,10 @@ class Medium:
         self.states_in = np.zeros(n, dtype=np.int64)
         self.copies_sent = self.copies_delivered = self.copies_lost = 0
         self.bad_frames = 0
+        """Frames that do not decode, states with a phase outside the seven, and frames signing
+        drops (unverified): dropped."""
+        self.unverified = 0
+        """Frames the fleet's signing drops (signed fleets only; also in bad_frames)."""
         self.foreign = 0
         """Frames that are not a SWARMDROP_STATE of a known vehicle: dropped."""
         self.src: list[tuple | None] = [None] * n
@@ -222,7 +229,12 @@ class Medium:
         taken = 0
         to_monitors: list[bytes] = []
         commands: list[tuple[bytes, tuple]] = []
+        sg = self.signing
         for frame, addr in self.link.recv():
+            if sg is not None and not sg.check(frame):
+                self.unverified += 1
+                self.bad_frames += 1
+                continue
             try:
                 msg = self.codec.decode(frame)
             except FrameError:
