@@ -283,7 +283,10 @@ def test_swarm_link_input_rules_over_udp():
         tx.state(2, e_us + 5_500_000, 1, (3, 3, 3))
         _poll_until(link, lambda: link.states_in == 5)
         assert view.stamp_s[0, 1] == pytest.approx(5.5) and view.pos_ned_m[0, 1].tolist() == [3, 3, 3]
-        # the radio's end-of-tick marker is taken whoever signs it
+        # the radio's end-of-tick marker is taken whoever signs it, but not from the future
+        tx.ep.queue_fields(md.MAVLINK_MSG_ID_SWARMDROP_TICK, [e_us + 3_605_000_000], tx.dest, sysid=255, compid=0)
+        tx.ep.flush()
+        _poll_until(link, lambda: link.future == 3)
         tx.ep.queue_fields(md.MAVLINK_MSG_ID_SWARMDROP_TICK, [e_us + 5_100_000], tx.dest, sysid=255, compid=0)
         tx.ep.flush()
         _poll_until(link, lambda: link.marker_us == e_us + 5_100_000)

@@ -83,7 +83,7 @@ class SwarmLink:
         self.states_in = 0
         self.rejected = 0
         self.future = 0
-        """States dropped for a stamp over FUTURE_TOLERANCE_US ahead of now_us."""
+        """States (and radio tick markers) dropped for a stamp over FUTURE_TOLERANCE_US ahead of now_us."""
         self.now_us: int | None = None
         """Unix µs of the vehicle's own clock at its newest tick (set by the tick path)."""
         self.sent = 0
@@ -135,7 +135,12 @@ class SwarmLink:
                                     (w[1] - epoch) * 1e-6 if w[1] else math.nan):
                     applied += 1
             elif msgid == _TICK:
-                self.marker_us = max(self.marker_us, w[0])
+                # (a marker from the future would end every lockstep wait until then; before the
+                # first tick there is no clock to judge by, and the first tick may wait for one)
+                if w[0] > latest_us and self.now_us is not None:
+                    self.future += 1
+                else:
+                    self.marker_us = max(self.marker_us, w[0])
             elif msgid in _PLAN_IDS and self.assembler is not None and epoch is not None:
                 self.plan_frames_in += 1
                 plan = self.assembler.feed_fields(msgid, self.ep.codec.named(msgid, w))
