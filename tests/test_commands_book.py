@@ -71,6 +71,20 @@ def test_the_newest_seq_wins_and_nothing_older_undoes_it(paper):
     assert not len(book2.receive([1], forged)) and book2.stats.conflicts == 1  # same seq, other content
 
 
+def test_a_plan_whose_slots_would_collide_is_refused_by_its_receivers(paper):
+    """The sender's checks do not protect receivers from a forged or buggy sender: a formation
+    whose 40 slots lie within 2 mm (as an attacker sent it, seq 1000, no morph) is dropped and
+    counted; the same plan with slots the separation apart is taken; an ABORT always is."""
+    import dataclasses
+
+    _, (a, _b, _c) = _plans(paper)
+    book = PlanBook(paper, 2)
+    tiny = dataclasses.replace(a, seq=1000, formation=FormationSpec("circle", radius_m=1e-3), morph_s=0.0)
+    assert not len(book.receive([0, 1], tiny)) and book.stats.rejected == 2 and book.pending_seq.tolist() == [0, 0]
+    assert book.receive([0], dataclasses.replace(tiny, formation=FormationSpec("circle", radius_m=35.0))).tolist() == [0]
+    assert book.receive([1], dataclasses.replace(tiny, seq=1001, abort=True)).tolist() == [1]
+
+
 def test_late_rows_fly_what_the_on_time_rows_fly(paper):
     """Rows that hear a plan after its effective time apply it at once, as if on time: they
     join the on-time rows' track (one track, one reference), so consensus sees one reference."""

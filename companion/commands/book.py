@@ -30,7 +30,8 @@ from typing import Any
 
 import numpy as np
 
-from companion.commands.plan import SwarmPlan, initial_plan
+from companion.commands.checks import shape_spacing
+from companion.commands.plan import CommandError, SwarmPlan, initial_plan
 from companion.commands.track import Track, enter, initial_track
 from companion.feasibility import SEPARATION_M
 from companion.mission import Mission
@@ -53,7 +54,8 @@ class BookStats:
     superseded: int = 0
     """Pending row-plans replaced by a newer one before their effective time."""
     rejected: int = 0
-    """Plans for another vehicle count: dropped."""
+    """Plans for another vehicle count, or (ABORT aside) with a formation whose slots are closer
+    than the separation: dropped."""
 
 
 @dataclass
@@ -148,7 +150,7 @@ class PlanBook:
         new take it as their pending plan (replacing an older pending one); the others count it
         as stale, a duplicate or a conflict. Returns the rows that took it."""
         rows = self._rows(rows)
-        if plan.n_vehicles != self.mission.n or plan.seq < 1:
+        if plan.n_vehicles != self.mission.n or plan.seq < 1 or not self._spaced(plan):
             self.stats.rejected += len(rows)
             return rows[:0]
         held = self._plans.get(plan.seq)
@@ -166,6 +168,18 @@ class PlanBook:
             self._plans.setdefault(plan.seq, plan)
             self._prune()
         return take
+
+    def _spaced(self, plan: SwarmPlan) -> bool:
+        """The plan's formation keeps its slots the separation apart (checked again here, on the
+        receiving side: the sender's checks do not protect against a forged or buggy sender). An
+        ABORT always passes: it hands every vehicle to its autopilot."""
+        if plan.abort or plan.n_slots < 2:
+            return True
+        try:
+            shape_spacing(f"plan {plan.seq}", plan.formation, plan.n_slots, self.separation_m)
+        except CommandError:
+            return False
+        return True
 
     def advance(self, t_s: float, t_go_rows) -> np.ndarray:
         """Pending plans whose effective time has come (t_s >= effective_s) take force, entered
