@@ -310,15 +310,19 @@ async def _serve(feed):
     return server
 
 
-async def test_server_guards_host_origin_and_hostile_page_messages():
-    aiohttp = pytest.importorskip("aiohttp")
+async def _serve_live():
+    """A console server on small_6's live feed: (server, the feed's swarm source, base URL)."""
+    from swarmdrop.console.feeds import LiveFeed
 
     mission = load_mission(SMALL6)
     src, model = _source(mission)
-    from swarmdrop.console.feeds import LiveFeed
-
     server = await _serve(LiveFeed(mission, model, src))
-    base = f"http://127.0.0.1:{server.port}"
+    return server, src, f"http://127.0.0.1:{server.port}"
+
+
+async def test_server_guards_host_origin_and_hostile_page_messages():
+    aiohttp = pytest.importorskip("aiohttp")
+    server, src, base = await _serve_live()
     try:
         async with aiohttp.ClientSession() as http:
             async with http.get(base + "/") as r:
@@ -372,12 +376,7 @@ async def test_api_status_follows_the_swarm_with_no_page_open():
     """A script polling /api/status (no browser) reads the swarm as it is now: the frame loop
     refreshes the status only for open pages, and /api/status once cached it for good."""
     aiohttp = pytest.importorskip("aiohttp")
-    mission = load_mission(SMALL6)
-    src, model = _source(mission)
-    from swarmdrop.console.feeds import LiveFeed
-
-    server = await _serve(LiveFeed(mission, model, src))
-    base = f"http://127.0.0.1:{server.port}"
+    server, src, base = await _serve_live()
     try:
         async with aiohttp.ClientSession() as http:
             async with http.get(base + "/api/status") as r:

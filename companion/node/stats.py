@@ -285,7 +285,8 @@ class SwarmLinkStats:
     rejected: int = 0
     """States dropped by them (wrong sender, slot, stamp, phase, or before the clock was known)."""
     future: int = 0
-    """States dropped for a stamp over 0.5 s ahead of the vehicle's clock (FUTURE_TOLERANCE_US)."""
+    """States (and radio tick markers) dropped for a stamp over 0.5 s ahead of the vehicle's clock
+    (companion.swarm.FUTURE_TOLERANCE_S)."""
     bad_frames: int = 0
     stale_or_duplicate: int = 0
     """Accepted states older than, or as old as, the one already held."""

@@ -44,9 +44,9 @@ _TICK = MsgId.SWARMDROP_TICK
 _PLAN_IDS = frozenset((int(MsgId.SWARMDROP_PLAN), int(MsgId.SWARMDROP_SLOTS)))
 _POS = struct.Struct("<3f")
 ECHO_MEMORY = 64
+"""Own publications remembered to recognise their echoes (6.4 s at 10 Hz)."""
 FUTURE_TOLERANCE_US = round(FUTURE_TOLERANCE_S * 1e6)
 """companion.swarm.FUTURE_TOLERANCE_S in the wire's µs."""
-"""Own publications remembered to recognise their echoes (6.4 s at 10 Hz)."""
 CONFLICT_LOG_PERIOD_S = 10.0
 """At most one conflict log line per sender per this many (wall) seconds after the first."""
 

@@ -108,7 +108,7 @@ class ConsoleServer:
         self._meta = ""
         self._status = ""
         self._status_at = -math.inf
-        """Loop time the status text was made, s (_fresh_status)."""
+        """Loop time the status text was made, s (_set_status)."""
         self.bad_requests = 0
         self.refused_origin = 0
         self.frame_errors = 0
