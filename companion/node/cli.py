@@ -169,9 +169,32 @@ def _logging(args) -> None:
     root.setLevel(args.log_level)
 
 
+def node_config(args, warn: Callable[[str], None]):  # -> companion.node.config.NodeConfig
+    """The node's checked configuration from the agent's arguments (add_arguments): the
+    same for `swarmdrop agent` and `swarmdrop preflight`.
+
+    Raises:
+        ConfigError: a bad URL, mission file or value (named); EndpointError from the URL.
+    """
+    from companion.node.config import NodeConfig, check_node, load_mission_file
+
+    parse_url(args.autopilot)
+    mf = load_mission_file(args.mission)
+    return check_node(NodeConfig(
+        vehicle_id=args.vehicle_id, autopilot_url=args.autopilot, mission=mf, swarm_bind=args.swarm_bind,
+        swarm_peers=args.swarm_peer, sysid=args.sysid, target_sysid=args.target_sysid, output=args.output,
+        rate_hz=args.rate, plan_every=args.plan_every, launch=args.launch or mf.mission.launch,
+        takeoff_alt_m=args.takeoff_alt if args.takeoff_alt is not None else mf.mission.takeoff_alt_m,
+        lockstep=args.lockstep, setup_timeout_s=args.setup_timeout,
+        stats_path=Path(args.stats) if args.stats else None, signing=args.signing,
+        signing_key_file=Path(args.signing_key) if args.signing_key else None,
+        allow_drifting_loss=args.allow_drifting_loss, set_loss_action=args.set_loss_action,
+        stop_unread_streams=args.stop_unread_streams),
+        strict=args.strict, warn=warn, source=str(args.mission))
+
+
 def run(args) -> int:
     from companion.link.signing import SigningError
-    from companion.node.config import NodeConfig, check_node, load_mission_file
     from companion.node.runner import AgentNode, ExitCode, NodeFailure
     from companion.node.stats import check_writable
 
@@ -183,19 +206,7 @@ def run(args) -> int:
     log = logging.getLogger("swarmdrop.agent")
     try:
         factory, loop_name = event_loop_factory(args.event_loop)
-        parse_url(args.autopilot)
-        mf = load_mission_file(args.mission)
-        cfg = check_node(NodeConfig(
-            vehicle_id=args.vehicle_id, autopilot_url=args.autopilot, mission=mf, swarm_bind=args.swarm_bind,
-            swarm_peers=args.swarm_peer, sysid=args.sysid, target_sysid=args.target_sysid, output=args.output,
-            rate_hz=args.rate, plan_every=args.plan_every, launch=args.launch or mf.mission.launch,
-            takeoff_alt_m=args.takeoff_alt if args.takeoff_alt is not None else mf.mission.takeoff_alt_m,
-            lockstep=args.lockstep, setup_timeout_s=args.setup_timeout,
-            stats_path=Path(args.stats) if args.stats else None, signing=args.signing,
-            signing_key_file=Path(args.signing_key) if args.signing_key else None,
-            allow_drifting_loss=args.allow_drifting_loss, set_loss_action=args.set_loss_action,
-            stop_unread_streams=args.stop_unread_streams),
-            strict=args.strict, warn=log.warning, source=str(args.mission))
+        cfg = node_config(args, log.warning)
         if cfg.stats_path is not None:
             check_writable(cfg.stats_path)  # now, not in flight at the first write
         node = AgentNode(cfg)

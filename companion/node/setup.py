@@ -27,11 +27,12 @@ import time
 from collections.abc import AsyncIterator, Callable
 
 from companion.config import ConfigError
-from companion.link.dialects.base import AfterLoss, LossBehaviour, PositionLoop
+from companion.link.dialects.base import AfterLoss, AutopilotDialect, LossBehaviour, PositionLoop
 from companion.link.endpoints import Link, MavEndpoint, UdpLink, open_link, parse_url
 from companion.link.enums import MavCmd, MavComponent, MsgId
 from companion.link.signing import Signing, SigningError, TimestampStore, load_key
 from companion.link.wire import Codec
+from companion.mission import LossEnvelope
 from companion.node.config import NodeConfig
 from companion.node.exits import ExitCode, NodeFailure
 from companion.node.streams import UnreadStreams
@@ -155,6 +156,42 @@ def open_endpoints(cfg: NodeConfig, codec: Codec, ap_sign: Signing | None, sw_si
         raise ConfigError(f"swarm link --swarm-bind {swarm_address(cfg)}: cannot bind: {err}") from None
     return (MavEndpoint(ap_link, codec, cfg.own_sysid, COMPANION, signing=ap_sign),
             MavEndpoint(sw_link, codec, cfg.own_sysid, COMPANION, signing=sw_sign))
+
+
+def loss_changes(d: AutopilotDialect, then: AfterLoss, values: dict[str, float],
+                 timeout_max_s: float) -> dict[str, float]:
+    """The parameters --set-loss-action `then` writes: the dialect's loss action, and its
+    setpoint timeout down to timeout_max_s (the mission's loss envelope) if it is longer
+    or unknown. Values already right are written again (set_loss_action skips them).
+
+    Raises:
+        ValueError: this autopilot cannot be set to do `then` (the message says why).
+    """
+    fix = d.loss_fix(then)
+    timeout = values.get(d.setpoint_timeout_param)
+    if timeout is None or not timeout <= timeout_max_s:
+        fix = {**fix, d.setpoint_timeout_param: timeout_max_s}
+    return fix
+
+
+def loss_refusal(ap_name: str, d: AutopilotDialect, loss: LossBehaviour, envelope: LossEnvelope) -> str | None:
+    """Why the agent refuses to fly with this companion-loss behaviour (the message names
+    the parameter, what the vehicle would do and the fix), None if it does not: the vehicle
+    must stop and hold or land (`loss.safe`) inside the ghost the swarm keeps clear for it
+    (mission.swarm.loss). The one rule of set-up (verify_loss) and `swarmdrop preflight`."""
+    if not loss.safe:
+        return (f"{ap_name}: {loss.deciding()}: if this companion stops, the vehicle {loss.what_then()}, which the "
+                f"swarm's ghost does not cover. Fix: {d.loss_fix_text()}, or pass --set-loss-action hold|land; or "
+                "--allow-drifting-loss to fly anyway")
+    over = envelope.exceeded_by(loss)
+    if over:
+        # The swarm draws this vehicle's ghost from the mission's envelope: beyond it, a
+        # silent vehicle can fly where its neighbours do not expect it.
+        return (f"{ap_name}: if this companion stops, the vehicle can leave the ghost the swarm keeps clear for it "
+                f"(mission.swarm.loss): {'; '.join(over)}. Fix: set {d.setpoint_timeout_param} to at most "
+                f"{envelope.timeout_s:g} s (--set-loss-action does) or the limits named, or widen mission.swarm.loss "
+                "for every vehicle; or --allow-drifting-loss to fly anyway")
+    return None
 
 
 class Setup:
@@ -392,22 +429,8 @@ class Setup:
             values = await self.set_loss_action(AfterLoss(cfg.set_loss_action), values, envelope.timeout_s)
         loss = d.loss_behaviour(values)
         log.info("if this companion stops: %s", loss.describe())
-        if not loss.safe:
-            text = (f"{self.ap_name}: {loss.deciding()}: if this companion stops, the vehicle "
-                    f"{loss.what_then()}, which the swarm's ghost does not cover. Fix: {d.loss_fix_text()}, or pass "
-                    "--set-loss-action hold|land; or --allow-drifting-loss to fly anyway")
-            if not cfg.allow_drifting_loss:
-                raise NodeFailure(ExitCode.SETUP, text)
-            log.warning("%s (--allow-drifting-loss: flying anyway)", text.split(". Fix:")[0])
-            return loss
-        over = envelope.exceeded_by(loss)
-        if over:
-            # The swarm draws this vehicle's ghost from the mission's envelope: beyond it, a
-            # silent vehicle can fly where its neighbours do not expect it.
-            text = (f"{self.ap_name}: if this companion stops, the vehicle can leave the ghost the swarm keeps "
-                    f"clear for it (mission.swarm.loss): {'; '.join(over)}. Fix: set {d.setpoint_timeout_param} "
-                    f"to at most {envelope.timeout_s:g} s (--set-loss-action does) or the limits named, or widen "
-                    "mission.swarm.loss for every vehicle; or --allow-drifting-loss to fly anyway")
+        text = loss_refusal(self.ap_name, d, loss, envelope)
+        if text is not None:
             if not cfg.allow_drifting_loss:
                 raise NodeFailure(ExitCode.SETUP, text)
             log.warning("%s (--allow-drifting-loss: flying anyway)", text.split(". Fix:")[0])
@@ -424,12 +447,9 @@ class Setup:
         """
         d = self.vehicle.ap
         try:
-            fix = d.loss_fix(then)
+            fix = loss_changes(d, then, values, timeout_max_s)
         except ValueError as err:
             raise NodeFailure(ExitCode.SETUP, f"--set-loss-action {then.value}: {err}") from None
-        timeout = values.get(d.setpoint_timeout_param)
-        if timeout is None or not timeout <= timeout_max_s:
-            fix = {**fix, d.setpoint_timeout_param: timeout_max_s}
         out = dict(values)
         for name, value in fix.items():
             old = out.get(name)
