@@ -285,6 +285,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     sitl_cli.add_parser(sub)
     agent_cli.add_parser(sub)
+    from companion.node import preflight
+
+    preflight.add_parser(sub)
     console_cli.add_parser(sub)
     return p
 
@@ -317,6 +320,10 @@ def main(argv: list[str] | None = None) -> int:
             from companion.node.cli import main as agent_main
 
             return agent_main(argv[1:])
+        if argv and argv[0] == "preflight":  # onboard too
+            from companion.node.preflight import main as preflight_main
+
+            return preflight_main(argv[1:])
         args = build_parser().parse_args(_options_taking_a_leading_dash(argv))
         extra = EXTRA_OF.get(argv[0]) if argv else None
         missing = missing_packages(extra) if extra is not None else []

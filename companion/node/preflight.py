@@ -1,0 +1,462 @@
+"""`swarmdrop preflight`: is this companion ready to fly its vehicle? (docs/field-kit.md)
+
+Takes the agent's own arguments and goes through what `swarmdrop agent` would do before it
+launches, over the same links and with the same code (AgentNode, its VehicleLink, SwarmLink
+and the set-up's parameter rules), but changes nothing on the vehicle: no arming, no mode
+change, no parameter written (what the agent *would* write is reported), no state published
+on the swarm link. The only command that alters the autopilot is the one the agent sends too:
+SET_MESSAGE_INTERVAL for the streams it reads, on its own link.
+
+Then it listens for `--listen` seconds: the rate at which LOCAL_POSITION_NED and
+ATTITUDE_QUATERNION really arrive (a 57600-baud telemetry port cannot carry 50 Hz of both),
+and who is heard on the swarm link (a neighbour flying as this vehicle's id is a failure).
+
+Each check ends PASS, WARN or FAIL with one line that says what was found and, for a
+failure, what to change. Exit 0 when nothing failed (warnings allowed), PREFLIGHT_FAILED
+(8) when something did, CONFIG (2) for bad arguments, as the agent. `--json FILE` writes the
+same as a PreflightReport.
+"""
+from __future__ import annotations
+
+import argparse
+import asyncio
+import dataclasses
+import json
+import logging
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from companion.config import ConfigError
+from companion.link.dialects.base import AfterLoss
+from companion.link.enums import MavLandedState, MsgId
+from companion.node.exits import ExitCode, NodeFailure
+from companion.node.setup import (
+    EXT_STATE_INTERVAL_S,
+    LOSS_PARAM_RETRIES,
+    LOSS_PARAM_TIMEOUT_S,
+    SHAPING_PARAM_RETRIES,
+    SHAPING_PARAM_TIMEOUT_S,
+    SYSTEM_TIME_INTERVAL_S,
+    loss_changes,
+    loss_refusal,
+)
+from companion.node.vehicle import CommandError
+
+log = logging.getLogger("swarmdrop.preflight")
+
+PASS, WARN, FAIL = "PASS", "WARN", "FAIL"
+PREFLIGHT_FAILED = 8
+"""Exit status when a check failed (ExitCode's values 0-7 are the agent's)."""
+LISTEN_S = 5.0
+"""Default listening window for telemetry rates and neighbours, s."""
+RATE_OK, RATE_POOR = 0.9, 0.5
+"""Telemetry at this fraction of --rate or more passes; below RATE_POOR it fails."""
+ORIGIN_FAR_M = 20_000.0
+"""An EKF origin farther than this from the mission origin is called out (a wrong mission.origin?)."""
+SETUP_TIMEOUT_S = 10.0
+"""Preflight's default --setup-timeout (the agent's is 120 s: it may start before its autopilot)."""
+
+
+@dataclass
+class Check:
+    """One preflight item: name, PASS / WARN / FAIL, and what was found."""
+
+    name: str
+    status: str
+    detail: str
+
+
+@dataclass
+class PreflightReport:
+    """Everything preflight found (`--json`)."""
+
+    vehicle_id: int
+    autopilot_url: str
+    checks: list[Check] = field(default_factory=list)
+
+    @property
+    def failed(self) -> list[Check]:
+        return [c for c in self.checks if c.status == FAIL]
+
+    @property
+    def warned(self) -> list[Check]:
+        return [c for c in self.checks if c.status == WARN]
+
+    def add(self, name: str, status: str, detail: str) -> None:
+        self.checks.append(Check(name, status, detail))
+
+    def as_dict(self) -> dict:
+        return {"vehicle_id": self.vehicle_id, "autopilot_url": self.autopilot_url, "passed": not self.failed,
+                "failures": len(self.failed), "warnings": len(self.warned),
+                "checks": [dataclasses.asdict(c) for c in self.checks]}
+
+    def text(self) -> str:
+        width = max((len(c.name) for c in self.checks), default=0)
+        lines = [f"swarmdrop preflight: vehicle {self.vehicle_id} on {self.autopilot_url}"]
+        lines += [f"  {c.status}  {c.name:<{width}}  {c.detail}" for c in self.checks]
+        verdict = "ready to fly" if not self.failed else "NOT ready: fix what failed"
+        lines.append(f"{len(self.failed)} failed, {len(self.warned)} warning(s): {verdict}")
+        return "\n".join(lines)
+
+
+class Preflight:
+    """The checks, on a constructed AgentNode (its links open) and the running event loop.
+
+    Args:
+        node: an AgentNode (never run: its ticks never start). listen_s: the listening window, s.
+        report: where the checks go.
+    """
+
+    def __init__(self, node, listen_s: float, report: PreflightReport):
+        self.node = node
+        self.cfg = node.cfg
+        self.listen_s = listen_s
+        self.report = report
+        self._lpn_ms: set[int] = set()
+        self._att_ms: set[int] = set()
+
+    def _read_autopilot(self) -> None:
+        """The reader of the autopilot socket: the agent's own (not flying, so it never ticks),
+        then the LOCAL_POSITION_NED and ATTITUDE_QUATERNION stamps seen, for their rates."""
+        self.node.tick.on_autopilot()
+        v = self.node.vehicle
+        if self._counting:
+            if v.lpn is not None:
+                self._lpn_ms.add(v.lpn.time_boot_ms)
+            if v.att is not None:
+                self._att_ms.add(v.att.time_boot_ms)
+
+    async def run(self) -> None:
+        """Every check in order; one that cannot go on (no autopilot) ends the list there."""
+        loop = asyncio.get_running_loop()
+        self._counting = False
+        fd = self.node.ap_ep.link.fileno()
+        loop.add_reader(fd, self._read_autopilot)
+        try:
+            if await self._autopilot():
+                await self._streams_clock_origin()
+                await self._parameters()
+                await self._listen()
+                self._vehicle_state()  # (after listening: EXTENDED_SYS_STATE has brought the landed state)
+        finally:
+            loop.remove_reader(fd)
+
+    # ------------------------------------------------------------------ the autopilot
+    async def _autopilot(self) -> bool:
+        node, cfg, r = self.node, self.cfg, self.report
+        setup, v = node.setup, node.vehicle
+        t0 = time.monotonic()
+        try:
+            await setup.wait(setup.ours_heard, cfg.setup_timeout_s, "HEARTBEAT", ExitCode.NO_AUTOPILOT)
+        except NodeFailure as err:
+            link = node.ap_ep.link
+            hint = ""
+            if link.bytes_in and not link.frames_in:
+                hint = " (bytes came but no MAVLink frame: a serial link at the wrong baud rate?)"
+            elif not link.bytes_in:
+                hint = (" (nothing at all came: check the wiring or the address, and that the autopilot sends "
+                        "MAVLink on that port)")
+            r.add("autopilot", FAIL, f"{err}{hint}")
+            return False
+        d, hb = v.ap, v.hb
+        assert hb is not None  # ours_heard
+        r.add("autopilot", PASS, f"{d.name} autopilot sysid {v.target_sysid}, HEARTBEAT after "
+                                 f"{time.monotonic() - t0:.1f} s, mode {d.mode_name(hb.custom_mode)}")
+        if v.other_autopilots:
+            r.add("other autopilots", WARN, "also on this link: sysid " + ", ".join(
+                str(k) for k in sorted(v.other_autopilots)) + " (ignored: a router or a shared port?)")
+        return True
+
+    def _vehicle_state(self) -> None:
+        v, r = self.node.vehicle, self.report
+        hb = v.hb
+        assert hb is not None  # _autopilot
+        if hb.armed:
+            r.add("vehicle state", WARN, f"ARMED ({_landed(v.landed_state)}): preflight is meant for a vehicle on "
+                                         "the ground or on the carrier")
+        else:
+            r.add("vehicle state", PASS, f"disarmed ({_landed(v.landed_state)})")
+
+    async def _streams_clock_origin(self) -> None:
+        node, cfg, r = self.node, self.cfg, self.report
+        v = node.vehicle
+        asked = ((MsgId.LOCAL_POSITION_NED, 1.0 / cfg.rate_hz), (MsgId.ATTITUDE_QUATERNION, 1.0 / cfg.rate_hz),
+                 (MsgId.EXTENDED_SYS_STATE, EXT_STATE_INTERVAL_S), (MsgId.SYSTEM_TIME, SYSTEM_TIME_INTERVAL_S))
+        refused = []
+        for msgid, interval in asked:
+            try:
+                await v.set_message_interval(msgid, interval)
+            except CommandError as err:
+                refused.append(f"{msgid.name}: {err}")
+        if refused:
+            r.add("streams", FAIL, "SET_MESSAGE_INTERVAL refused or unanswered: " + "; ".join(refused))
+        else:
+            r.add("streams", PASS, f"LOCAL_POSITION_NED and ATTITUDE_QUATERNION at {cfg.rate_hz:g} Hz, "
+                                   "EXTENDED_SYS_STATE, SYSTEM_TIME accepted (rates measured below)")
+        try:
+            msg = await v.request_message(MsgId.SYSTEM_TIME)
+        except CommandError as err:
+            r.add("clock", FAIL, f"no SYSTEM_TIME: {err}; the agent takes its time from the autopilot's clock")
+        else:
+            if v.unix_offset_us is None or not msg.time_unix_usec:
+                r.add("clock", FAIL, "SYSTEM_TIME carries no Unix time (no GNSS time yet?): the agent waits for it "
+                                     "and mission time cannot start")
+            else:
+                skew = msg.time_unix_usec * 1e-6 - time.time()
+                r.add("clock", PASS if abs(skew) < 1.0 else WARN,
+                      f"autopilot UTC {_utc(msg.time_unix_usec * 1e-6)}, {skew:+.2f} s from this computer's clock"
+                      + ("" if abs(skew) < 1.0 else " (the agent uses the autopilot's; the logs' times will differ)"))
+        try:
+            await v.request_message(MsgId.GPS_GLOBAL_ORIGIN, timeout_s=1.0, retries=2)
+        except CommandError:
+            pass
+        if v.offset_ned_m is None or v.origin_e7 is None:
+            r.add("EKF origin", FAIL, "no GPS_GLOBAL_ORIGIN: the autopilot has no EKF origin yet (no GNSS fix?); "
+                                      "the agent waits for it before it can place the vehicle in the mission frame")
+        else:
+            lat, lon, alt = v.origin_e7
+            off = v.offset_ned_m
+            dist = math.hypot(float(off[0]), float(off[1]))
+            r.add("EKF origin", PASS if dist <= ORIGIN_FAR_M else WARN,
+                  f"{lat * 1e-7:.7f}, {lon * 1e-7:.7f}, {alt * 1e-3:.1f} m: {dist:.0f} m from the mission origin"
+                  + ("" if dist <= ORIGIN_FAR_M else " (is mission.origin the flying site?)"))
+
+    # ------------------------------------------------------------------ parameters
+    async def _parameters(self) -> None:
+        node, cfg, r = self.node, self.cfg, self.report
+        setup, d = node.setup, node.vehicle.ap
+        if not d.loss_params:
+            r.add("companion loss", WARN, f"the {d.name} dialect does not say what its autopilot does if this "
+                                          "companion stops: unchecked")
+        else:
+            values = await setup.read_params(d.loss_required_params, LOSS_PARAM_TIMEOUT_S, LOSS_PARAM_RETRIES)
+            missing = [n for n in d.loss_required_params if n not in values]
+            if missing:
+                r.add("companion loss", FAIL, f"no answer for {', '.join(missing)}: the agent refuses to fly without "
+                                              "knowing what the vehicle does if it stops")
+            else:
+                shaping = tuple(n for n in d.loss_params if n not in d.loss_required_params)
+                values |= await setup.read_params(shaping, SHAPING_PARAM_TIMEOUT_S, SHAPING_PARAM_RETRIES)
+                self._loss(values)
+        try:
+            if cfg.output == "attitude":
+                to_set = []
+                for name, bits in d.attitude_params().items():
+                    current = int(await node.vehicle.get_param(name))
+                    if current & int(bits) != int(bits):
+                        to_set.append(f"{name} {current} -> {current | int(bits)}")
+                hover = await node.vehicle.get_param(d.hover_thrust_param)
+                r.add("attitude output", WARN if to_set else PASS,
+                      f"{d.hover_thrust_param} = {hover:.3f} (the agent estimates hover thrust from here)"
+                      + ("; the agent will set " + ", ".join(to_set) if to_set else ""))
+            elif d.loop_params:
+                got = await setup.read_params(d.loop_params, SHAPING_PARAM_TIMEOUT_S, SHAPING_PARAM_RETRIES)
+                stock = [n for n in d.loop_params if n not in got]
+                r.add("position loops", WARN if stock else PASS,
+                      ", ".join(f"{n} = {got[n]:g}" for n in d.loop_params if n in got)
+                      + (f"; no answer for {', '.join(stock)}: the slot hold assumes the defaults" if stock else ""))
+            if cfg.launch == "carrier":
+                change = []
+                for name, value in d.carrier_params().items():
+                    now = await node.vehicle.get_param(name)
+                    if now != value:
+                        change.append(f"{name} {now:g} -> {value:g}")
+                if change:
+                    r.add("carrier launch", WARN, "the agent will set " + ", ".join(change))
+        except CommandError as err:
+            r.add("parameters", FAIL, f"{err}")
+
+    def _loss(self, values: dict[str, float]) -> None:
+        cfg, r, setup, d = self.cfg, self.report, self.node.setup, self.node.vehicle.ap
+        envelope = cfg.mission.mission.swarm.loss
+        will = ""
+        if cfg.set_loss_action is not None:
+            try:
+                fix = loss_changes(d, AfterLoss(cfg.set_loss_action), values, envelope.timeout_s)
+            except ValueError as err:
+                r.add("companion loss", FAIL, f"--set-loss-action {cfg.set_loss_action}: {err}")
+                return
+            changes = {n: x for n, x in fix.items() if values.get(n) != x}
+            if changes:
+                will = " (after --set-loss-action writes " + ", ".join(
+                    f"{n} {values[n]:g} -> {x:g}" if n in values else f"{n} = {x:g}" for n, x in changes.items()) + ")"
+            values = {**values, **fix}
+        loss = d.loss_behaviour(values)
+        text = loss_refusal(setup.ap_name, d, loss, envelope)
+        if text is None:
+            r.add("companion loss", WARN if will else PASS, f"if this companion stops: {loss.describe()}{will}")
+        elif cfg.allow_drifting_loss:
+            r.add("companion loss", WARN, text.split(". Fix:")[0] + f" (--allow-drifting-loss: it flies anyway){will}")
+        else:
+            r.add("companion loss", FAIL, text + will)
+
+    # ------------------------------------------------------------------ listening
+    async def _listen(self) -> None:
+        """Telemetry rates and the swarm link over the listening window."""
+        node, cfg, r = self.node, self.cfg, self.report
+        v, sw = node.vehicle, node.swarm
+        if v.unix_offset_us is not None:
+            sw.set_epoch(v.unix_offset_us // 1_000_000 // 3600 * 3600)  # (as set-up: whole hours)
+        self._lpn_ms.clear()
+        self._att_ms.clear()
+        self._counting = True
+        loop = asyncio.get_running_loop()
+        end = loop.time() + self.listen_s
+        next_hb = loop.time()
+        while loop.time() < end:
+            if loop.time() >= next_hb:  # the companion's HEARTBEAT, as the agent sends it
+                v.heartbeat()
+                node.ap_ep.flush()
+                next_hb += 1.0
+            if v.lpn is not None and v.unix_offset_us is not None:
+                sw.now_us = v.unix_us(v.lpn.time_boot_ms)
+            sw.poll()
+            await asyncio.sleep(0.1)
+        self._counting = False
+        sw.poll()
+        for name, stamps in (("LOCAL_POSITION_NED", self._lpn_ms), ("ATTITUDE_QUATERNION", self._att_ms)):
+            hz = len(stamps) / self.listen_s
+            status = PASS if hz >= RATE_OK * cfg.rate_hz else WARN if hz >= RATE_POOR * cfg.rate_hz else FAIL
+            hint = "" if status == PASS else (
+                f" of the {cfg.rate_hz:g} Hz asked: a slow telemetry port (57600 baud carries about 5 kB/s; "
+                "use 921600) or a busy router; or lower --rate")
+            r.add(f"{name} rate", status, f"{hz:.1f} Hz over {self.listen_s:g} s{hint}")
+        self._swarm()
+
+    def _swarm(self) -> None:
+        node, cfg, r = self.node, self.cfg, self.report
+        sw = node.swarm
+        heard = [j for j, s in enumerate(sw.view.stamp_s[0].tolist()) if s == s and j != cfg.vehicle_id]
+        bound = node.setup.swarm_bound()
+        if sw.conflicts:
+            r.add("swarm link", FAIL, f"{sw.conflicts} state(s) from {sw.last_conflict} claim this vehicle's id "
+                                      f"{cfg.vehicle_id}: two vehicles would fly as one (check --vehicle-id on both)")
+        elif heard:
+            r.add("swarm link", PASS, f"on {bound}: heard {len(heard)} of {sw.view.n_vehicles - 1} other vehicles "
+                                      f"({_ids(heard)})")
+        else:
+            r.add("swarm link", WARN, f"on {bound}: no other vehicle heard in {self.listen_s:g} s (fine alone on the "
+                                      "bench; in the field, check the radio, --swarm-peer and the mission)")
+        if sw.rejected or sw.future or sw.ep.bad_frames:
+            r.add("swarm traffic", WARN, f"dropped: {sw.rejected} rejected, {sw.future} stamped in the future, "
+                                         f"{sw.ep.bad_frames} malformed (another mission, or a wrong clock, on "
+                                         "this port?)")
+
+
+def _landed(state: int) -> str:
+    try:
+        return MavLandedState(state).name.removeprefix("MAV_LANDED_STATE_").lower().replace("_", " ")
+    except ValueError:
+        return f"landed state {state}"
+
+
+def _utc(t: float) -> str:
+    return time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(t))
+
+
+def _ids(ids: list[int]) -> str:
+    return ", ".join(str(j) for j in ids[:12]) + (", ..." if len(ids) > 12 else "")
+
+
+def _local(report: PreflightReport, cfg, n_vehicles: int, loop_name: str, warnings: list[str]) -> None:
+    """The checks that need no link: the mission, the host, signing, the swarm socket's peers."""
+    report.add("mission", WARN if warnings else PASS,
+               f"vehicle {cfg.vehicle_id} of {n_vehicles}, {cfg.launch} launch, {cfg.output} output at "
+               f"{cfg.rate_hz:g} Hz" + (f"; {len(warnings)} feasibility warning(s): " + "; ".join(warnings)
+                                        if warnings else ""))
+    report.add("host", PASS, f"Python {sys.version.split()[0]}, event loop {loop_name}, {os.cpu_count()} CPU(s)")
+    if cfg.signing == "off":
+        report.add("signing", WARN, "off: anyone in radio range can send this vehicle's swarm link states and "
+                                    "plans (docs/signing.md)")
+    else:
+        report.add("signing", PASS, f"{cfg.signing}, key {cfg.signing_key_file}")
+    if not cfg.swarm_peers:
+        report.add("swarm peers", WARN, "no --swarm-peer: this vehicle would hear the swarm but nobody would hear it")
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    from companion.node import cli
+    cli.add_arguments(p)
+    for action in p._actions:  # (preflight runs beside a powered autopilot: it need not wait as long)
+        if action.dest == "log_level":  # (the report says it all; the log is for --log-level INFO)
+            action.default = "WARNING"
+            action.help = "log this level and above to stderr (default WARNING)"
+        if action.dest == "setup_timeout":
+            action.default = SETUP_TIMEOUT_S
+            action.help = (f"wait this long for the autopilot's HEARTBEAT (or its TCP server), s (default "
+                           f"{SETUP_TIMEOUT_S:g})")
+    p.add_argument("--listen", type=float, default=LISTEN_S, metavar="S",
+                   help=f"listen this long for telemetry rates and neighbours, s, 1 to 600 (default {LISTEN_S:g})")
+    p.add_argument("--json", default=None, metavar="FILE",
+                   help="also write the report as JSON to FILE ('-': standard output instead of the table)")
+
+
+def add_parser(subparsers) -> argparse.ArgumentParser:
+    p = subparsers.add_parser("preflight", help="check a companion before flight: autopilot, streams, clock, "
+                                                "EKF origin, loss parameters, swarm link (changes nothing)")
+    add_arguments(p)
+    return p
+
+
+def run(args) -> int:
+    """Preflight with parsed arguments; the exit status."""
+    from companion.link.endpoints import EndpointError
+    from companion.link.signing import SigningError
+    from companion.node import cli
+    from companion.node.runner import AgentNode
+
+    logging.basicConfig(level=args.log_level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    warnings: list[str] = []
+    try:
+        if not 1.0 <= args.listen <= 600.0:
+            raise ConfigError(f"--listen {args.listen:g}: expected 1 to 600 s")
+        factory, loop_name = cli.event_loop_factory(args.event_loop)
+        cfg = cli.node_config(args, warnings.append)
+        node = AgentNode(cfg)
+    except (ConfigError, EndpointError, SigningError) as err:
+        print(f"swarmdrop preflight: error: {err}", file=sys.stderr)
+        return int(ExitCode.CONFIG)
+    except NodeFailure as err:  # a TCP autopilot link with no server within --setup-timeout
+        print(f"swarmdrop preflight: {err}", file=sys.stderr)
+        return PREFLIGHT_FAILED
+    except OSError as err:
+        print(f"swarmdrop preflight: error: cannot open a link (autopilot {args.autopilot}, swarm "
+              f"{args.swarm_bind[0]}:{args.swarm_bind[1]}): {err}", file=sys.stderr)
+        return int(ExitCode.CONFIG)
+    report = PreflightReport(cfg.vehicle_id, cfg.autopilot_url)
+    _local(report, cfg, node.mission.n, loop_name, warnings)
+    try:
+        with asyncio.Runner(loop_factory=factory) as runner:
+            runner.run(Preflight(node, args.listen, report).run())
+    except KeyboardInterrupt:
+        report.add("interrupted", FAIL, "stopped before every check had run")
+    finally:
+        node.ap_ep.close()
+        node.sw_ep.close()
+    if args.json == "-":
+        print(json.dumps(report.as_dict(), indent=1))
+    else:
+        print(report.text())
+        if args.json:
+            try:
+                Path(args.json).write_text(json.dumps(report.as_dict(), indent=1) + "\n")
+            except OSError as err:
+                print(f"swarmdrop preflight: --json {args.json}: {err.strerror or err}", file=sys.stderr)
+                return int(ExitCode.CONFIG)
+    return PREFLIGHT_FAILED if report.failed else 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="swarmdrop preflight",
+                                description="check a companion before flight (docs/field-kit.md); changes nothing "
+                                            "on the vehicle but the agent's own telemetry rates")
+    add_arguments(p)
+    return run(p.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())
