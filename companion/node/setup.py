@@ -184,14 +184,20 @@ def loss_refusal(ap_name: str, d: AutopilotDialect, loss: LossBehaviour, envelop
                 f"swarm's ghost does not cover. Fix: {d.loss_fix_text()}, or pass --set-loss-action hold|land; or "
                 "--allow-drifting-loss to fly anyway")
     over = envelope.exceeded_by(loss)
-    if over:
-        # The swarm draws this vehicle's ghost from the mission's envelope: beyond it, a
-        # silent vehicle can fly where its neighbours do not expect it.
-        return (f"{ap_name}: if this companion stops, the vehicle can leave the ghost the swarm keeps clear for it "
-                f"(mission.swarm.loss): {'; '.join(over)}. Fix: set {d.setpoint_timeout_param} to at most "
-                f"{envelope.timeout_s:g} s (--set-loss-action does) or the limits named, or widen mission.swarm.loss "
-                "for every vehicle; or --allow-drifting-loss to fly anyway")
-    return None
+    if not over:
+        return None
+    # The swarm draws this vehicle's ghost from the mission's envelope: beyond it, a silent
+    # vehicle can fly where its neighbours do not expect it. One fix per kind of excess.
+    fixes = []
+    if any(o.startswith("its setpoint timeout") for o in over):
+        fixes.append(f"set {d.setpoint_timeout_param} to at most {envelope.timeout_s:g} s (--set-loss-action does)")
+    if any(o.startswith("it lands where") for o in over):
+        fixes.append("make it hold (--set-loss-action hold), or set mission.swarm.loss.then: land for every vehicle")
+    if any(not o.startswith(("its setpoint timeout", "it lands where")) for o in over):
+        fixes.append("bring the limits named to the mission's, or widen mission.swarm.loss for every vehicle")
+    return (f"{ap_name}: if this companion stops, the vehicle can leave the ghost the swarm keeps clear for it "
+            f"(mission.swarm.loss): {'; '.join(over)}. Fix: {'; '.join(fixes)}; or --allow-drifting-loss to fly "
+            "anyway")
 
 
 class Setup:
