@@ -54,12 +54,13 @@ def _preflight(*args: str, neighbour: tuple[int, int, int] | None = None,
     return subprocess.CompletedProcess(cmd, proc.returncode, out, err)
 
 
-def _sitl(tmp: Path, dialect: str, ap_base: int):
+def _sitl(tmp: Path, dialect: str, ap_base: int, gcs_port: int | None = None):
     from sim_bridge.sitl.background import BackgroundSitl
     from sim_bridge.sitl.config import EndpointConfig, sitl_config
 
     mcfg = load_mission_file(GROUND4).mission
-    ep = EndpointConfig(remote_host="127.0.0.1", remote_base_port=ap_base, bind_host="127.0.0.1", local_base_port=0)
+    ep = EndpointConfig(remote_host="127.0.0.1", remote_base_port=ap_base, bind_host="127.0.0.1", local_base_port=0,
+                        gcs_enabled=gcs_port is not None, gcs_remote_port=gcs_port or 14550)
     cfg = sitl_config(2, seed=4, launch="ground", origin=mcfg.origin, dialect=dialect, endpoints=ep,
                       tlog_path=str(tmp / "sitl.tlog"))  # (its clock: this computer's, as a GNSS-timed autopilot)
     return BackgroundSitl(cfg)
@@ -164,6 +165,61 @@ def test_preflight_fails_on_a_second_vehicle_with_this_id_and_on_a_silent_autopi
     assert checks["mission"]["status"] == "PASS" and "streams" not in checks
 
 
+@pytest.mark.timeout(120)
+def test_preflight_fails_on_a_mission_origin_kilometres_off_and_on_a_vehicle_already_flying(tmp_path):
+    """A mission whose origin is 11 km from the flying site puts the vehicle 11 km from the
+    mission: the agent would fly it there, so a ground launch fails (position); a vehicle that
+    a ground station has armed and taken off fails too (vehicle state): the agent's set-up is
+    for a vehicle on the ground or on the carrier."""
+    from companion.link.dialects import Mode, dialect_named
+    from companion.link.enums import MavCmd
+    from sim_bridge.sitl.testing import MavClient
+
+    base = free_udp_base_port(2 + 2)
+    bg = _sitl(tmp_path, "px4", base, gcs_port=base + 3)
+    server = bg.start()
+    text = GROUND4.read_text()
+    assert "lat_deg: 47.397742" in text
+    far = tmp_path / "far.yaml"
+    far.write_text(text.replace("lat_deg: 47.397742", "lat_deg: 47.497742"))  # 0.1 deg: 11.1 km north
+    common = ("--vehicle-id", "0", "--autopilot", f"udpin://127.0.0.1:{base}", "--swarm-bind",
+              f"127.0.0.1:{base + 2}", "--swarm-peer", "127.0.0.1:9", "--set-loss-action", "hold", "--listen", "1",
+              "--json", "-")
+    gcs = None
+    try:
+        out = _preflight(*common, "--mission", str(far))
+        assert out.returncode == PREFLIGHT_FAILED, out.stdout + out.stderr
+        checks = {c["name"]: c for c in json.loads(out.stdout)["checks"]}
+        pos = checks["position"]
+        assert pos["status"] == "FAIL" and "mission.origin" in pos["detail"], pos
+        assert 11_000 < float(pos["detail"].split("(")[1].split()[0]) < 11_300, pos  # its distance, m
+        assert checks["vehicle state"]["status"] == "PASS"
+
+        gcs = MavClient(base + 3)
+        assert gcs.wait("HEARTBEAT", lambda m: m.get_srcSystem() == 1, 10) is not None
+        d = dialect_named("px4")
+        for cmd, params in ((MavCmd.MAV_CMD_DO_SET_MODE, d.set_mode_params(d.takeoff_from_mode)),
+                            (MavCmd.MAV_CMD_COMPONENT_ARM_DISARM, (1.0,)),
+                            (MavCmd.MAV_CMD_NAV_TAKEOFF, d.takeoff_params(5.0, 488.0))):
+            ack = gcs.command(1, int(cmd), *params)
+            assert ack is not None and ack.result == 0, (cmd, ack)
+        deadline = time.monotonic() + 30
+        while not server.state.pos_ned_m[0, 2] < -2.0:  # (a condition polled with a deadline)
+            assert time.monotonic() < deadline, "vehicle 0 did not take off"
+            gcs.wait("HEARTBEAT", timeout_s=0.2)
+        out = _preflight(*common)
+        assert out.returncode == PREFLIGHT_FAILED, out.stdout + out.stderr
+        checks = {c["name"]: c for c in json.loads(out.stdout)["checks"]}
+        state = checks["vehicle state"]
+        assert state["status"] == "FAIL" and state["detail"].startswith("armed and ") and "flying" in state["detail"], state
+        assert checks["position"]["status"] == "PASS"
+        assert server.autopilots[0].mode != Mode.OFFBOARD  # (nothing taken over)
+    finally:
+        if gcs is not None:
+            gcs.close()
+        bg.stop()
+
+
 def test_preflight_refuses_bad_arguments_as_the_agent_does(tmp_path):
     out = _preflight("--vehicle-id", "9", "--autopilot", "udpin://127.0.0.1:14540")
     assert out.returncode == 2 and "vehicle" in out.stderr.lower(), out.stderr
@@ -171,3 +227,30 @@ def test_preflight_refuses_bad_arguments_as_the_agent_does(tmp_path):
     assert out.returncode == 2 and "localhost:14540" in out.stderr, out.stderr
     out = _preflight("--vehicle-id", "0", "--autopilot", "udpin://127.0.0.1:14540", "--listen", "0")
     assert out.returncode == 2 and "--listen" in out.stderr, out.stderr
+    for option in ("--json", "--stats", "--log-file"):  # refused at once, before any check
+        bad = str(tmp_path / "missing" / "x.json")
+        out = _preflight("--vehicle-id", "0", "--autopilot", "udpin://127.0.0.1:14540", option, bad)
+        assert out.returncode == 2 and option in out.stderr and bad in out.stderr and not out.stdout, out
+
+
+@pytest.mark.timeout(60)
+def test_preflight_stopped_by_sigterm_reports_what_it_had(tmp_path):
+    """A supervisor's SIGTERM (or Ctrl-C) while it waits for the autopilot: the checks so far and
+    an 'interrupted' failure, exit 8."""
+    url = f"udpin://127.0.0.1:{free_udp_base_port(1)}"
+    cmd = lean_cmd("preflight", "--mission", str(GROUND4), "--vehicle-id", "0", "--autopilot", url,
+                   "--setup-timeout", "40", "--log-level", "INFO", "--json", "-", blocked=(*EXTRAS_ONLY, "sim_bridge"))
+    with subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) as proc:
+        try:
+            assert proc.stderr is not None
+            for line in proc.stderr:  # (bounded by the test's timeout; the line comes at once)
+                if "waiting for HEARTBEAT" in line:
+                    break
+            proc.terminate()
+            out, _ = proc.communicate(timeout=20)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == PREFLIGHT_FAILED
+    checks = {c["name"]: c for c in json.loads(out)["checks"]}
+    assert checks["interrupted"]["status"] == "FAIL" and checks["mission"]["status"] == "PASS"

@@ -25,6 +25,7 @@ import json
 import logging
 import math
 import os
+import signal
 import sys
 import time
 from dataclasses import dataclass, field
@@ -55,8 +56,9 @@ LISTEN_S = 5.0
 """Default listening window for telemetry rates and neighbours, s."""
 RATE_OK, RATE_POOR = 0.9, 0.5
 """Telemetry at this fraction of --rate or more passes; below RATE_POOR it fails."""
-ORIGIN_FAR_M = 20_000.0
-"""An EKF origin farther than this from the mission origin is called out (a wrong mission.origin?)."""
+NEAR_MISSION_M = 1000.0
+"""A vehicle farther than this beyond the mission's waypoints (from its origin) is called out:
+a wrong mission.origin, or another site (a ground launch fails, a carrier launch warns)."""
 SETUP_TIMEOUT_S = 10.0
 """Preflight's default --setup-timeout (the agent's is 120 s: it may start before its autopilot)."""
 
@@ -118,6 +120,28 @@ class Preflight:
         self.report = report
         self._lpn_ms: set[int] = set()
         self._att_ms: set[int] = set()
+        self._counting = False
+        """Listening: the telemetry stamps are being counted."""
+        self.frames_in = self.signed_in = 0
+        """Frames from the autopilot link, and how many of them were signed (_count_signed)."""
+        self._count_signed()
+
+    def _count_signed(self) -> None:
+        """Count the signed MAVLink 2 frames that reach the autopilot link (before signing checks):
+        an autopilot that signs while this companion does not probably requires signing, and
+        then ignores every command of ours."""
+        link = self.node.ap_ep.link
+        recv = link.recv
+
+        def counted(*args, **kw):
+            frames = recv(*args, **kw)
+            for frame, _addr in frames:
+                self.frames_in += 1
+                if len(frame) > 2 and frame[0] == 0xFD and frame[2] & 0x01:  # MAVLink 2, incompat flag SIGNED
+                    self.signed_in += 1
+            return frames
+
+        link.recv = counted
 
     def _read_autopilot(self) -> None:
         """The reader of the autopilot socket: the agent's own (not flying, so it never ticks),
@@ -133,7 +157,6 @@ class Preflight:
     async def run(self) -> None:
         """Every check in order; one that cannot go on (no autopilot) ends the list there."""
         loop = asyncio.get_running_loop()
-        self._counting = False
         fd = self.node.ap_ep.link.fileno()
         loop.add_reader(fd, self._read_autopilot)
         try:
@@ -155,8 +178,15 @@ class Preflight:
         except NodeFailure as err:
             link = node.ap_ep.link
             hint = ""
+            sg = node.ap_ep.signing
+            dropped = 0 if sg is None else sg.counters.unsigned + sg.counters.bad_signature + sg.counters.replayed
             if link.bytes_in and not link.frames_in:
                 hint = " (bytes came but no MAVLink frame: a serial link at the wrong baud rate?)"
+            elif dropped and sg is not None:
+                c = sg.counters
+                hint = (f" ({link.frames_in} frames came, and signing dropped them: {c.unsigned} unsigned, "
+                        f"{c.bad_signature} with a bad signature, {c.replayed} replayed: does the autopilot sign with "
+                        "this key? docs/field-kit.md, 'Install')")
             elif not link.bytes_in:
                 hint = (" (nothing at all came: check the wiring or the address, and that the autopilot sends "
                         "MAVLink on that port)")
@@ -171,13 +201,24 @@ class Preflight:
                 str(k) for k in sorted(v.other_autopilots)) + " (ignored: a router or a shared port?)")
         return True
 
+    def _signs_but_we_do_not(self) -> str:
+        """A hint for an unanswered command: the autopilot signs its frames and we do not."""
+        if self.node.ap_ep.signing is None and self.signed_in:
+            return (f" ({self.signed_in} of the {self.frames_in} frames from the autopilot were signed: it probably "
+                    "requires signing and ignores unsigned commands; pass --signing require --signing-key FILE)")
+        return ""
+
     def _vehicle_state(self) -> None:
         v, r = self.node.vehicle, self.report
         hb = v.hb
         assert hb is not None  # _autopilot
-        if hb.armed:
-            r.add("vehicle state", WARN, f"ARMED ({_landed(v.landed_state)}): preflight is meant for a vehicle on "
-                                         "the ground or on the carrier")
+        if hb.armed and (hb.in_air or v.landed_state in (MavLandedState.MAV_LANDED_STATE_IN_AIR,
+                                                          MavLandedState.MAV_LANDED_STATE_TAKEOFF,
+                                                          MavLandedState.MAV_LANDED_STATE_LANDING)):
+            r.add("vehicle state", FAIL, f"armed and {_landed(v.landed_state)}: the agent's set-up and launch are for a "
+                                         "vehicle on the ground or on the carrier, not one already flying")
+        elif hb.armed:
+            r.add("vehicle state", WARN, f"ARMED ({_landed(v.landed_state)}): the agent will not arm it again")
         else:
             r.add("vehicle state", PASS, f"disarmed ({_landed(v.landed_state)})")
 
@@ -193,14 +234,16 @@ class Preflight:
             except CommandError as err:
                 refused.append(f"{msgid.name}: {err}")
         if refused:
-            r.add("streams", FAIL, "SET_MESSAGE_INTERVAL refused or unanswered: " + "; ".join(refused))
+            r.add("streams", FAIL, "SET_MESSAGE_INTERVAL refused or unanswered: " + "; ".join(refused)
+                  + self._signs_but_we_do_not())
         else:
             r.add("streams", PASS, f"LOCAL_POSITION_NED and ATTITUDE_QUATERNION at {cfg.rate_hz:g} Hz, "
                                    "EXTENDED_SYS_STATE, SYSTEM_TIME accepted (rates measured below)")
         try:
             msg = await v.request_message(MsgId.SYSTEM_TIME)
         except CommandError as err:
-            r.add("clock", FAIL, f"no SYSTEM_TIME: {err}; the agent takes its time from the autopilot's clock")
+            r.add("clock", FAIL, f"no SYSTEM_TIME: {err}; the agent takes its time from the autopilot's clock"
+                  + self._signs_but_we_do_not())
         else:
             if v.unix_offset_us is None or not msg.time_unix_usec:
                 r.add("clock", FAIL, "SYSTEM_TIME carries no Unix time (no GNSS time yet?): the agent waits for it "
@@ -216,14 +259,14 @@ class Preflight:
             pass
         if v.offset_ned_m is None or v.origin_e7 is None:
             r.add("EKF origin", FAIL, "no GPS_GLOBAL_ORIGIN: the autopilot has no EKF origin yet (no GNSS fix?); "
-                                      "the agent waits for it before it can place the vehicle in the mission frame")
+                                      "the agent waits for it before it can place the vehicle in the mission frame"
+                  + self._signs_but_we_do_not())
         else:
             lat, lon, alt = v.origin_e7
             off = v.offset_ned_m
             dist = math.hypot(float(off[0]), float(off[1]))
-            r.add("EKF origin", PASS if dist <= ORIGIN_FAR_M else WARN,
-                  f"{lat * 1e-7:.7f}, {lon * 1e-7:.7f}, {alt * 1e-3:.1f} m: {dist:.0f} m from the mission origin"
-                  + ("" if dist <= ORIGIN_FAR_M else " (is mission.origin the flying site?)"))
+            r.add("EKF origin", PASS, f"{lat * 1e-7:.7f}, {lon * 1e-7:.7f}, {alt * 1e-3:.1f} m: {dist:.0f} m from the "
+                                      "mission origin")
 
     # ------------------------------------------------------------------ parameters
     async def _parameters(self) -> None:
@@ -256,9 +299,10 @@ class Preflight:
             elif d.loop_params:
                 got = await setup.read_params(d.loop_params, SHAPING_PARAM_TIMEOUT_S, SHAPING_PARAM_RETRIES)
                 stock = [n for n in d.loop_params if n not in got]
-                r.add("position loops", WARN if stock else PASS,
-                      ", ".join(f"{n} = {got[n]:g}" for n in d.loop_params if n in got)
-                      + (f"; no answer for {', '.join(stock)}: the slot hold assumes the defaults" if stock else ""))
+                parts = [", ".join(f"{n} = {got[n]:g}" for n in d.loop_params if n in got)] if got else []
+                if stock:
+                    parts.append(f"no answer for {', '.join(stock)}: the slot hold assumes the {d.name} defaults")
+                r.add("position loops", WARN if stock else PASS, "; ".join(parts))
             if cfg.launch == "carrier":
                 change = []
                 for name, value in d.carrier_params().items():
@@ -267,6 +311,9 @@ class Preflight:
                         change.append(f"{name} {now:g} -> {value:g}")
                 if change:
                     r.add("carrier launch", WARN, "the agent will set " + ", ".join(change))
+                else:
+                    r.add("carrier launch", PASS, ", ".join(f"{n} = {x:g}" for n, x in d.carrier_params().items())
+                          or "no parameter to set")
         except CommandError as err:
             r.add("parameters", FAIL, f"{err}")
 
@@ -318,14 +365,38 @@ class Preflight:
             await asyncio.sleep(0.1)
         self._counting = False
         sw.poll()
-        for name, stamps in (("LOCAL_POSITION_NED", self._lpn_ms), ("ATTITUDE_QUATERNION", self._att_ms)):
-            hz = len(stamps) / self.listen_s
+        rates = {"LOCAL_POSITION_NED": len(self._lpn_ms) / self.listen_s,
+                 "ATTITUDE_QUATERNION": len(self._att_ms) / self.listen_s}
+        for name, hz in rates.items():
             status = PASS if hz >= RATE_OK * cfg.rate_hz else WARN if hz >= RATE_POOR * cfg.rate_hz else FAIL
-            hint = "" if status == PASS else (
-                f" of the {cfg.rate_hz:g} Hz asked: a slow telemetry port (57600 baud carries about 5 kB/s; "
-                "use 921600) or a busy router; or lower --rate")
+            hint = "" if status == PASS else f" of the {cfg.rate_hz:g} Hz asked: " + _rate_hint(
+                name, hz, rates, cfg.rate_hz, cfg.autopilot_url) + self._signs_but_we_do_not()
             r.add(f"{name} rate", status, f"{hz:.1f} Hz over {self.listen_s:g} s{hint}")
+        self._position()
         self._swarm()
+
+    def _position(self) -> None:
+        """Where the vehicle is in the mission frame, against where the mission flies: a wrong
+        mission.origin (or a vehicle at another site) puts it kilometres away, and the agent
+        would fly it there."""
+        node, cfg, r = self.node, self.cfg, self.report
+        v = node.vehicle
+        if v.lpn is None or v.offset_ned_m is None:
+            return  # (the EKF origin or the rate checks have said why)
+        off = v.offset
+        n, e = v.lpn.values[0] + off[0], v.lpn.values[1] + off[1]
+        reach = max([math.hypot(w[0], w[1]) for w in cfg.mission.mission.waypoints_ned_m] + [0.0])
+        dist = math.hypot(n, e)
+        text = (f"{n:.1f} m N, {e:.1f} m E of the mission origin ({dist:.0f} m; the mission's waypoints reach "
+                f"{reach:.0f} m)")
+        if dist <= reach + NEAR_MISSION_M:
+            r.add("position", PASS, text)
+        elif cfg.launch == "carrier":
+            r.add("position", WARN, text + ": far from the mission; fine at another airfield before the carrier "
+                                           "flies, otherwise check mission.origin")
+        else:
+            r.add("position", FAIL, text + ": the agent would fly it there from here; check mission.origin (the "
+                                           "flying site) and that this is the right vehicle")
 
     def _swarm(self) -> None:
         node, cfg, r = self.node, self.cfg, self.report
@@ -334,24 +405,43 @@ class Preflight:
         bound = node.setup.swarm_bound()
         if sw.conflicts:
             r.add("swarm link", FAIL, f"{sw.conflicts} state(s) from {sw.last_conflict} claim this vehicle's id "
-                                      f"{cfg.vehicle_id}: two vehicles would fly as one (check --vehicle-id on both)")
+                                      f"{cfg.vehicle_id}: two vehicles would fly as one (check --vehicle-id on both); "
+                                      f"heard {len(heard)} other vehicle(s)" + (f" ({_ids(heard)})" if heard else ""))
         elif heard:
             r.add("swarm link", PASS, f"on {bound}: heard {len(heard)} of {sw.view.n_vehicles - 1} other vehicles "
                                       f"({_ids(heard)})")
         else:
             r.add("swarm link", WARN, f"on {bound}: no other vehicle heard in {self.listen_s:g} s (fine alone on the "
                                       "bench; in the field, check the radio, --swarm-peer and the mission)")
-        if sw.rejected or sw.future or sw.ep.bad_frames:
+        skipped = sw.ep.link.bytes_skipped
+        if sw.rejected or sw.future or sw.ep.bad_frames or skipped:
             r.add("swarm traffic", WARN, f"dropped: {sw.rejected} rejected, {sw.future} stamped in the future, "
-                                         f"{sw.ep.bad_frames} malformed (another mission, or a wrong clock, on "
-                                         "this port?)")
+                                         f"{sw.ep.bad_frames} malformed frames, {skipped} bytes that were no frame "
+                                         "(another mission, another program or a wrong clock on this port?)")
+
+
+def _rate_hint(name: str, hz: float, rates: dict[str, float], asked_hz: float, url: str) -> str:
+    """Why a stream comes slower than asked, as far as the rates tell."""
+    other = max(x for k, x in rates.items() if k != name)
+    if hz == 0.0 and name == "LOCAL_POSITION_NED" and other > 0.0:
+        return ("none came while ATTITUDE_QUATERNION did: the autopilot has no local position yet (no GNSS fix, "
+                "EKF not converged)")
+    if other >= RATE_OK * asked_hz:
+        return "the other stream comes at the rate asked, so the autopilot limits this one (its stream rate cap)"
+    serial = url.lower().startswith(("serial:", "/dev/"))
+    if serial:
+        return ("a slow serial port (57600 baud carries about 5 kB/s, 50 Hz of both streams about 5 kB/s: use "
+                "921600), or lower --rate")
+    return "the autopilot or a router between caps the rate (both streams are short), or lower --rate"
 
 
 def _landed(state: int) -> str:
-    try:
-        return MavLandedState(state).name.removeprefix("MAV_LANDED_STATE_").lower().replace("_", " ")
-    except ValueError:
-        return f"landed state {state}"
+    """EXTENDED_SYS_STATE's landed state in words."""
+    words: dict[int, str] = {MavLandedState.MAV_LANDED_STATE_ON_GROUND: "on the ground",
+                             MavLandedState.MAV_LANDED_STATE_IN_AIR: "in the air",
+                             MavLandedState.MAV_LANDED_STATE_TAKEOFF: "taking off",
+                             MavLandedState.MAV_LANDED_STATE_LANDING: "landing"}
+    return words.get(int(state), "landed state unknown")
 
 
 def _utc(t: float) -> str:
@@ -403,40 +493,51 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    """Preflight with parsed arguments; the exit status."""
+    """Preflight with parsed arguments; the exit status (0, PREFLIGHT_FAILED, or CONFIG for bad
+    arguments, a --json, --stats or --log-file path that cannot be written, or a port in use)."""
     from companion.link.endpoints import EndpointError
     from companion.link.signing import SigningError
     from companion.node import cli
     from companion.node.runner import AgentNode
+    from companion.node.stats import check_writable
 
-    logging.basicConfig(level=args.log_level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
     warnings: list[str] = []
+    signal.signal(signal.SIGTERM, _interrupt)  # (a supervisor's stop: the partial report, as Ctrl-C)
     try:
+        cli._logging(args)  # (the agent's: --log-file is opened, or refused, as the agent would)
         if not 1.0 <= args.listen <= 600.0:
             raise ConfigError(f"--listen {args.listen:g}: expected 1 to 600 s")
+        if args.json not in (None, "-"):
+            check_writable(Path(args.json), "--json")
         factory, loop_name = cli.event_loop_factory(args.event_loop)
         cfg = cli.node_config(args, warnings.append)
-        node = AgentNode(cfg)
+        if cfg.stats_path is not None:
+            check_writable(cfg.stats_path)  # (not written here: refused as the agent would refuse it)
     except (ConfigError, EndpointError, SigningError) as err:
         print(f"swarmdrop preflight: error: {err}", file=sys.stderr)
         return int(ExitCode.CONFIG)
-    except NodeFailure as err:  # a TCP autopilot link with no server within --setup-timeout
-        print(f"swarmdrop preflight: {err}", file=sys.stderr)
-        return PREFLIGHT_FAILED
-    except OSError as err:
-        print(f"swarmdrop preflight: error: cannot open a link (autopilot {args.autopilot}, swarm "
-              f"{args.swarm_bind[0]}:{args.swarm_bind[1]}): {err}", file=sys.stderr)
-        return int(ExitCode.CONFIG)
     report = PreflightReport(cfg.vehicle_id, cfg.autopilot_url)
-    _local(report, cfg, node.mission.n, loop_name, warnings)
+    node = None
     try:
-        with asyncio.Runner(loop_factory=factory) as runner:
-            runner.run(Preflight(node, args.listen, report).run())
+        try:
+            node = AgentNode(cfg)
+        except NodeFailure as err:  # a TCP autopilot link with no server within --setup-timeout
+            _local(report, cfg, cfg.mission.mission.n_vehicles, loop_name, warnings)
+            report.add("autopilot", FAIL, str(err))
+        except (ConfigError, EndpointError, SigningError, OSError) as err:
+            print(f"swarmdrop preflight: error: cannot open a link (autopilot {args.autopilot}, swarm "
+                  f"{args.swarm_bind[0]}:{args.swarm_bind[1]}): {err}", file=sys.stderr)
+            return int(ExitCode.CONFIG)
+        else:
+            _local(report, cfg, node.mission.n, loop_name, warnings)
+            with asyncio.Runner(loop_factory=factory) as runner:
+                runner.run(Preflight(node, args.listen, report).run())
     except KeyboardInterrupt:
         report.add("interrupted", FAIL, "stopped before every check had run")
     finally:
-        node.ap_ep.close()
-        node.sw_ep.close()
+        if node is not None:
+            node.ap_ep.close()
+            node.sw_ep.close()
     if args.json == "-":
         print(json.dumps(report.as_dict(), indent=1))
     else:
@@ -444,10 +545,13 @@ def run(args) -> int:
         if args.json:
             try:
                 Path(args.json).write_text(json.dumps(report.as_dict(), indent=1) + "\n")
-            except OSError as err:
+            except OSError as err:  # (checked at start; removed since)
                 print(f"swarmdrop preflight: --json {args.json}: {err.strerror or err}", file=sys.stderr)
-                return int(ExitCode.CONFIG)
     return PREFLIGHT_FAILED if report.failed else 0
+
+
+def _interrupt(signum, frame) -> None:
+    raise KeyboardInterrupt
 
 
 def main(argv: list[str] | None = None) -> int:
