@@ -4,12 +4,13 @@ it finds, what it refuses, and that it changes nothing on the vehicle but the st
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import time
 from pathlib import Path
 
 import pytest
-from lean_agent import EXTRAS_ONLY, lean_cmd
+from lean_agent import EXTRAS_ONLY, lean_agent_cmd, lean_cmd
 from pymavlink import mavutil
 
 from companion.link.endpoints import MavEndpoint, UdpLink
@@ -192,8 +193,16 @@ def test_preflight_fails_on_a_mission_origin_kilometres_off_and_on_a_vehicle_alr
         checks = {c["name"]: c for c in json.loads(out.stdout)["checks"]}
         pos = checks["position"]
         assert pos["status"] == "FAIL" and "mission.origin" in pos["detail"], pos
-        assert 11_000 < float(pos["detail"].split("(")[1].split()[0]) < 11_300, pos  # its distance, m
+        assert 11_000 < float(pos["detail"].split(" m from")[0].split()[-1]) < 11_300, pos  # its distance, m
         assert checks["vehicle state"]["status"] == "PASS"
+        # the agent itself refuses it, before it writes any parameter (its set-up's check_site)
+        agent = subprocess.run(lean_agent_cmd("--vehicle-id", "0", "--autopilot", f"udpin://127.0.0.1:{base}",
+                                              "--mission", str(far), "--swarm-bind", f"127.0.0.1:{base + 2}",
+                                              "--set-loss-action", "hold", "--setup-timeout", "20"),
+                               cwd=ROOT, capture_output=True, text=True, timeout=60)
+        assert agent.returncode == 4 and re.search(r"is 11[01]\d\d m from the mission origin", agent.stderr) \
+            and "mission.origin" in agent.stderr, agent.stderr
+        assert _commands_to(tmp_path / "sitl.tlog", 1) == [] and not server.autopilots[0].armed
 
         gcs = MavClient(base + 3)
         assert gcs.wait("HEARTBEAT", lambda m: m.get_srcSystem() == 1, 10) is not None

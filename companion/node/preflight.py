@@ -44,6 +44,7 @@ from companion.node.setup import (
     SYSTEM_TIME_INTERVAL_S,
     loss_changes,
     loss_refusal,
+    off_site,
 )
 from companion.node.vehicle import CommandError
 
@@ -56,9 +57,6 @@ LISTEN_S = 5.0
 """Default listening window for telemetry rates and neighbours, s."""
 RATE_OK, RATE_POOR = 0.9, 0.5
 """Telemetry at this fraction of --rate or more passes; below RATE_POOR it fails."""
-NEAR_MISSION_M = 1000.0
-"""A vehicle farther than this beyond the mission's waypoints (from its origin) is called out:
-a wrong mission.origin, or another site (a ground launch fails, a carrier launch warns)."""
 SETUP_TIMEOUT_S = 10.0
 """Preflight's default --setup-timeout (the agent's is 120 s: it may start before its autopilot)."""
 
@@ -384,19 +382,15 @@ class Preflight:
         if v.lpn is None or v.offset_ned_m is None:
             return  # (the EKF origin or the rate checks have said why)
         off = v.offset
-        n, e = v.lpn.values[0] + off[0], v.lpn.values[1] + off[1]
-        reach = max([math.hypot(w[0], w[1]) for w in cfg.mission.mission.waypoints_ned_m] + [0.0])
-        dist = math.hypot(n, e)
-        text = (f"{n:.1f} m N, {e:.1f} m E of the mission origin ({dist:.0f} m; the mission's waypoints reach "
-                f"{reach:.0f} m)")
-        if dist <= reach + NEAR_MISSION_M:
-            r.add("position", PASS, text)
+        n, e, d = v.lpn.values[0] + off[0], v.lpn.values[1] + off[1], v.lpn.values[2] + off[2]
+        far = off_site((n, e, d), cfg.mission.mission.waypoints_ned_m)  # (set-up's rule: check_site)
+        if far is None:
+            r.add("position", PASS, f"{n:.1f} m N, {e:.1f} m E of the mission origin")
         elif cfg.launch == "carrier":
-            r.add("position", WARN, text + ": far from the mission; fine at another airfield before the carrier "
-                                           "flies, otherwise check mission.origin")
+            r.add("position", WARN, far + " (a carrier launch flies on: fine at another airfield before the carrier "
+                                          "flies)")
         else:
-            r.add("position", FAIL, text + ": the agent would fly it there from here; check mission.origin (the "
-                                           "flying site) and that this is the right vehicle")
+            r.add("position", FAIL, far + " (the agent refuses it, exit 4)")
 
     def _swarm(self) -> None:
         node, cfg, r = self.node, self.cfg, self.report

@@ -22,6 +22,7 @@ import asyncio
 import contextlib
 import errno
 import logging
+import math
 import os
 import time
 from collections.abc import AsyncIterator, Callable
@@ -200,6 +201,24 @@ def loss_refusal(ap_name: str, d: AutopilotDialect, loss: LossBehaviour, envelop
             "anyway")
 
 
+NEAR_MISSION_M = 1000.0
+"""A vehicle farther than this beyond the reach of the mission's waypoints (from its origin) is
+not at the mission's site: a wrong mission.origin, or another site."""
+
+
+def off_site(pos_ned_m: tuple[float, float, float], waypoints_ned_m) -> str | None:
+    """Why a vehicle at pos_ned_m (mission frame, m) is not at the mission's site, None if it is:
+    over NEAR_MISSION_M beyond the farthest waypoint's horizontal distance from the origin.
+    The agent would fly it from there to its slot (a wrong mission.origin by kilometres)."""
+    reach = max(math.hypot(w[0], w[1]) for w in waypoints_ned_m)
+    dist = math.hypot(pos_ned_m[0], pos_ned_m[1])
+    if dist <= reach + NEAR_MISSION_M:
+        return None
+    return (f"the vehicle is {dist:.0f} m from the mission origin ({pos_ned_m[0]:.0f} m N, {pos_ned_m[1]:.0f} m E), "
+            f"the mission's waypoints {reach:.0f} m: the agent would fly it from there. Check mission.origin (the "
+            "flying site's) and that this is the right vehicle")
+
+
 class Setup:
     """Set-up and launch of one node (runs on the node's event loop).
 
@@ -340,6 +359,7 @@ class Setup:
         epoch_s = v.unix_offset_us // 1_000_000 // 3600 * 3600
         self.epoch_us = epoch_s * 1_000_000
         self.swarm.set_epoch(epoch_s)  # now: the swarm link drops states until it knows the epoch
+        self.check_site()
         try:
             async with self.announced("parameters"):
                 if cfg.output == "attitude":
@@ -366,6 +386,27 @@ class Setup:
         self.ready_wall_s = time.monotonic() - self.start_wall
         log.info("%s %.2f s: %s, %s, %s output at %g Hz, %s launch%s", SET_UP_LOG_TEXT, self.ready_wall_s, self.ap_name,
                  d.name, cfg.output, cfg.rate_hz, cfg.launch, ", lockstep" if cfg.lockstep else "")
+
+    def check_site(self) -> None:
+        """Before any parameter is written: a vehicle kilometres from the mission (off_site) is
+        refused for a ground launch; a carrier launch only warns (the vehicle may sit at another
+        airfield until the carrier flies). Not judged before its first LOCAL_POSITION_NED.
+
+        Raises:
+            NodeFailure(SETUP): a ground launch off the mission's site.
+        """
+        v, cfg = self.vehicle, self.cfg
+        if v.lpn is None:
+            log.debug("no LOCAL_POSITION_NED yet: the vehicle's place against the mission is not checked")
+            return
+        off = v.offset
+        text = off_site((v.lpn.values[0] + off[0], v.lpn.values[1] + off[1], v.lpn.values[2] + off[2]),
+                        cfg.mission.mission.waypoints_ned_m)
+        if text is None:
+            return
+        if cfg.launch == "ground":
+            raise NodeFailure(ExitCode.SETUP, f"{self.ap_name}: {text}")
+        log.warning("%s: %s (carrier launch: flying on)", self.ap_name, text)
 
     async def read_loop(self) -> PositionLoop | None:
         """The autopilot's position-loop gains (its dialect's loop_params; one it does not answer
