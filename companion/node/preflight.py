@@ -123,6 +123,7 @@ class Preflight:
         self.frames_in = self.signed_in = 0
         """Frames from the autopilot link, and how many of them were signed (_count_signed)."""
         self._count_signed()
+        self._count_telemetry()
 
     def _count_signed(self) -> None:
         """Count the signed MAVLink 2 frames that reach the autopilot link (before signing checks):
@@ -141,22 +142,27 @@ class Preflight:
 
         link.recv = counted
 
-    def _read_autopilot(self) -> None:
-        """The reader of the autopilot socket: the agent's own (not flying, so it never ticks),
-        then the LOCAL_POSITION_NED and ATTITUDE_QUATERNION stamps seen, for their rates."""
-        self.node.tick.on_autopilot()
+    def _count_telemetry(self) -> None:
+        """Count every LOCAL_POSITION_NED and ATTITUDE_QUATERNION the vehicle link takes (by its
+        stamp, once each), not one a read: a serial or TCP link delivers bursts in one read."""
         v = self.node.vehicle
-        if self._counting:
-            if v.lpn is not None:
-                self._lpn_ms.add(v.lpn.time_boot_ms)
-            if v.att is not None:
-                self._att_ms.add(v.att.time_boot_ms)
+        handle = v.handle_raw
+
+        def counted(msgid: int, sysid: int, compid: int, w: tuple) -> None:
+            handle(msgid, sysid, compid, w)
+            if self._counting:
+                if v.lpn is not None:
+                    self._lpn_ms.add(v.lpn.time_boot_ms)
+                if v.att is not None:
+                    self._att_ms.add(v.att.time_boot_ms)
+
+        v.handle_raw = counted  # type: ignore[method-assign]
 
     async def run(self) -> None:
         """Every check in order; one that cannot go on (no autopilot) ends the list there."""
         loop = asyncio.get_running_loop()
         fd = self.node.ap_ep.link.fileno()
-        loop.add_reader(fd, self._read_autopilot)
+        loop.add_reader(fd, self.node.tick.on_autopilot)  # (the agent's reader: not flying, it never ticks)
         try:
             if await self._autopilot():
                 await self._streams_clock_origin()
@@ -282,7 +288,9 @@ class Preflight:
             else:
                 shaping = tuple(n for n in d.loss_params if n not in d.loss_required_params)
                 values |= await setup.read_params(shaping, SHAPING_PARAM_TIMEOUT_S, SHAPING_PARAM_RETRIES)
-                self._loss(values)
+                stock = [n for n in shaping if n not in values]
+                self._loss(values, f" (no answer for {', '.join(stock)}: the {d.name} defaults assumed, as the agent "
+                                   "does)" if stock else "")
         try:
             if cfg.output == "attitude":
                 to_set = []
@@ -315,10 +323,10 @@ class Preflight:
         except CommandError as err:
             r.add("parameters", FAIL, f"{err}")
 
-    def _loss(self, values: dict[str, float]) -> None:
+    def _loss(self, values: dict[str, float], stock: str) -> None:
         cfg, r, setup, d = self.cfg, self.report, self.node.setup, self.node.vehicle.ap
         envelope = cfg.mission.mission.swarm.loss
-        will = ""
+        will = stock
         if cfg.set_loss_action is not None:
             try:
                 fix = loss_changes(d, AfterLoss(cfg.set_loss_action), values, envelope.timeout_s)
@@ -327,7 +335,7 @@ class Preflight:
                 return
             changes = {n: x for n, x in fix.items() if values.get(n) != x}
             if changes:
-                will = " (after --set-loss-action writes " + ", ".join(
+                will += " (after --set-loss-action writes " + ", ".join(
                     f"{n} {values[n]:g} -> {x:g}" if n in values else f"{n} = {x:g}" for n, x in changes.items()) + ")"
             values = {**values, **fix}
         loss = d.loss_behaviour(values)
@@ -357,8 +365,9 @@ class Preflight:
                 v.heartbeat()
                 node.ap_ep.flush()
                 next_hb += 1.0
-            if v.lpn is not None and v.unix_offset_us is not None:
-                sw.now_us = v.unix_us(v.lpn.time_boot_ms)
+            if v.unix_offset_us is not None:  # (the vehicle's clock, as the tick path sets it)
+                sample = v.lpn or v.att
+                sw.now_us = v.unix_us(sample.time_boot_ms) if sample is not None else int(time.time() * 1e6)
             sw.poll()
             await asyncio.sleep(0.1)
         self._counting = False
@@ -424,8 +433,8 @@ def _rate_hint(name: str, hz: float, rates: dict[str, float], asked_hz: float, u
         return "the other stream comes at the rate asked, so the autopilot limits this one (its stream rate cap)"
     serial = url.lower().startswith(("serial:", "/dev/"))
     if serial:
-        return ("a slow serial port (57600 baud carries about 5 kB/s, 50 Hz of both streams about 5 kB/s: use "
-                "921600), or lower --rate")
+        return ("a slow serial port (57600 baud carries about 5.7 kB/s, and 50 Hz of both streams need about "
+                "5 kB/s besides the rest: use 921600), or lower --rate")
     return "the autopilot or a router between caps the rate (both streams are short), or lower --rate"
 
 
@@ -487,8 +496,9 @@ def add_parser(subparsers) -> argparse.ArgumentParser:
 
 
 def run(args) -> int:
-    """Preflight with parsed arguments; the exit status (0, PREFLIGHT_FAILED, or CONFIG for bad
-    arguments, a --json, --stats or --log-file path that cannot be written, or a port in use)."""
+    """Preflight with parsed arguments; the exit status: 0, PREFLIGHT_FAILED, CONFIG for bad
+    arguments, a --json, --stats or --log-file path that cannot be written, or a port in use,
+    ERROR for an internal error (the report so far is still printed)."""
     from companion.link.endpoints import EndpointError
     from companion.link.signing import SigningError
     from companion.node import cli
@@ -496,13 +506,12 @@ def run(args) -> int:
     from companion.node.stats import check_writable
 
     warnings: list[str] = []
-    signal.signal(signal.SIGTERM, _interrupt)  # (a supervisor's stop: the partial report, as Ctrl-C)
     try:
         cli._logging(args)  # (the agent's: --log-file is opened, or refused, as the agent would)
         if not 1.0 <= args.listen <= 600.0:
             raise ConfigError(f"--listen {args.listen:g}: expected 1 to 600 s")
         if args.json not in (None, "-"):
-            check_writable(Path(args.json), "--json")
+            _check_report_path(Path(args.json))
         factory, loop_name = cli.event_loop_factory(args.event_loop)
         cfg = cli.node_config(args, warnings.append)
         if cfg.stats_path is not None:
@@ -512,6 +521,8 @@ def run(args) -> int:
         return int(ExitCode.CONFIG)
     report = PreflightReport(cfg.vehicle_id, cfg.autopilot_url)
     node = None
+    code = 0
+    previous = signal.signal(signal.SIGTERM, _interrupt)  # (a supervisor's stop: the partial report, as Ctrl-C)
     try:
         try:
             node = AgentNode(cfg)
@@ -528,7 +539,12 @@ def run(args) -> int:
                 runner.run(Preflight(node, args.listen, report).run())
     except KeyboardInterrupt:
         report.add("interrupted", FAIL, "stopped before every check had run")
+    except Exception as err:  # a bug, or an answer nobody foresaw: say so, and keep what was found
+        log.exception("preflight failed")
+        report.add("internal error", FAIL, f"{type(err).__name__}: {err} (a defect of swarmdrop: please report it)")
+        code = int(ExitCode.ERROR)
     finally:
+        signal.signal(signal.SIGTERM, previous)
         if node is not None:
             node.ap_ep.close()
             node.sw_ep.close()
@@ -539,9 +555,26 @@ def run(args) -> int:
         if args.json:
             try:
                 Path(args.json).write_text(json.dumps(report.as_dict(), indent=1) + "\n")
-            except OSError as err:  # (checked at start; removed since)
+            except OSError as err:  # (checked at start; changed since)
                 print(f"swarmdrop preflight: --json {args.json}: {err.strerror or err}", file=sys.stderr)
-    return PREFLIGHT_FAILED if report.failed else 0
+                return int(ExitCode.CONFIG)
+    return code or (PREFLIGHT_FAILED if report.failed else 0)
+
+
+def _check_report_path(path: Path) -> None:
+    """Refuse a --json path the report could not be written to (a directory, a missing or
+    read-only directory, a read-only file), before any check runs; nothing is created.
+
+    Raises:
+        ConfigError: naming the option, the path and the reason.
+    """
+    parent = path.parent if str(path.parent) else Path(".")
+    if path.is_dir():
+        raise ConfigError(f"--json {path}: is a directory, not a file")
+    if not parent.is_dir():
+        raise ConfigError(f"--json {path}: cannot write there: no directory {parent}")
+    if not os.access(path if path.exists() else parent, os.W_OK):
+        raise ConfigError(f"--json {path}: cannot write there: permission denied")
 
 
 def _interrupt(signum, frame) -> None:

@@ -359,7 +359,7 @@ class Setup:
         epoch_s = v.unix_offset_us // 1_000_000 // 3600 * 3600
         self.epoch_us = epoch_s * 1_000_000
         self.swarm.set_epoch(epoch_s)  # now: the swarm link drops states until it knows the epoch
-        self.check_site()
+        await self.check_site()
         try:
             async with self.announced("parameters"):
                 if cfg.output == "attitude":
@@ -387,17 +387,27 @@ class Setup:
         log.info("%s %.2f s: %s, %s, %s output at %g Hz, %s launch%s", SET_UP_LOG_TEXT, self.ready_wall_s, self.ap_name,
                  d.name, cfg.output, cfg.rate_hz, cfg.launch, ", lockstep" if cfg.lockstep else "")
 
-    def check_site(self) -> None:
+    async def check_site(self) -> None:
         """Before any parameter is written: a vehicle kilometres from the mission (off_site) is
         refused for a ground launch; a carrier launch only warns (the vehicle may sit at another
-        airfield until the carrier flies). Not judged before its first LOCAL_POSITION_NED.
+        airfield until the carrier flies). With no LOCAL_POSITION_NED streamed yet it is asked
+        for once (MAV_CMD_REQUEST_MESSAGE, then up to 1 s); without one (in lockstep the SITL's clock has not
+        started: not asked) the check is skipped, and said so.
 
         Raises:
             NodeFailure(SETUP): a ground launch off the mission's site.
         """
         v, cfg = self.vehicle, self.cfg
+        if v.lpn is None and not cfg.lockstep:
+            try:  # (the answer comes on the raw path, which answers no waiter: wait for the sample)
+                await v.command(MavCmd.MAV_CMD_REQUEST_MESSAGE, [float(MsgId.LOCAL_POSITION_NED)], retries=2)
+                await self.wait(lambda: v.lpn is not None, 1.0, "LOCAL_POSITION_NED", ExitCode.SETUP)
+            except (CommandError, NodeFailure):
+                pass
         if v.lpn is None:
-            log.debug("no LOCAL_POSITION_NED yet: the vehicle's place against the mission is not checked")
+            log.log(logging.INFO if cfg.lockstep else logging.WARNING,
+                    "no LOCAL_POSITION_NED from %s yet: whether the vehicle is at the mission's site is not checked",
+                    self.ap_name)
             return
         off = v.offset
         text = off_site((v.lpn.values[0] + off[0], v.lpn.values[1] + off[1], v.lpn.values[2] + off[2]),
