@@ -149,8 +149,15 @@ def test_preflight_fails_on_a_second_vehicle_with_this_id_and_on_a_silent_autopi
         out = _preflight("--vehicle-id", "0", "--autopilot", f"udpin://127.0.0.1:{base}", "--swarm-bind",
                          f"127.0.0.1:{swarm_port}", "--set-loss-action", "hold", "--listen", "1", "--json", "-",
                          neighbour=(swarm_port, 1, 0))  # sysid 1 says it is vehicle 0, from another address
+        # vehicle 0's companion on vehicle 1's port, with a set-up timeout shorter than the
+        # identity grace: still named as another vehicle's autopilot, not as silence
+        wrong = _preflight("--vehicle-id", "0", "--autopilot", f"udpin://127.0.0.1:{base + 1}", "--setup-timeout",
+                           "2", "--json", "-")
     finally:
         bg.stop()
+    assert wrong.returncode == PREFLIGHT_FAILED, wrong.stdout + wrong.stderr
+    ap = {c["name"]: c for c in json.loads(wrong.stdout)["checks"]}["autopilot"]
+    assert ap["status"] == "FAIL" and "is sysid 2" in ap["detail"] and "--target-sysid" in ap["detail"], ap
     assert out.returncode == PREFLIGHT_FAILED, out.stdout + out.stderr
     report = json.loads(out.stdout)
     checks = {c["name"]: c for c in report["checks"]}

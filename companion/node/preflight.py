@@ -174,18 +174,18 @@ class Preflight:
 
     # ------------------------------------------------------------------ the autopilot
     async def _autopilot(self) -> bool:
-        node, cfg, r = self.node, self.cfg, self.report
+        node, r = self.node, self.report
         setup, v = node.setup, node.vehicle
         t0 = time.monotonic()
         try:
-            await setup.wait(setup.ours_heard, cfg.setup_timeout_s, "HEARTBEAT", ExitCode.NO_AUTOPILOT)
+            await setup.wait_for_autopilot()
         except NodeFailure as err:
             link = node.ap_ep.link
             hint = ""
             sg = node.ap_ep.signing
             dropped = 0 if sg is None else sg.counters.unsigned + sg.counters.bad_signature + sg.counters.replayed
-            if link.bytes_in and not link.frames_in:
-                hint = " (bytes came but no MAVLink frame: a serial link at the wrong baud rate?)"
+            if err.code != ExitCode.NO_AUTOPILOT or (link.bytes_in and not link.frames_in):
+                pass  # (the message says it: another sysid, or bytes without frames)
             elif dropped and sg is not None:
                 c = sg.counters
                 hint = (f" ({link.frames_in} frames came, and signing dropped them: {c.unsigned} unsigned, "
@@ -200,9 +200,6 @@ class Preflight:
         assert hb is not None  # ours_heard
         r.add("autopilot", PASS, f"{d.name} autopilot sysid {v.target_sysid}, HEARTBEAT after "
                                  f"{time.monotonic() - t0:.1f} s, mode {d.mode_name(hb.custom_mode)}")
-        if v.other_autopilots:
-            r.add("other autopilots", WARN, "also on this link: sysid " + ", ".join(
-                str(k) for k in sorted(v.other_autopilots)) + " (ignored: a router or a shared port?)")
         return True
 
     def _signs_but_we_do_not(self) -> str:
@@ -214,6 +211,9 @@ class Preflight:
 
     def _vehicle_state(self) -> None:
         v, r = self.node.vehicle, self.report
+        if v.other_autopilots:  # (after listening: every sysid heard by then)
+            r.add("other autopilots", WARN, "also on this link: sysid " + ", ".join(
+                str(k) for k in sorted(v.other_autopilots)) + " (ignored: a router or a shared port?)")
         hb = v.hb
         assert hb is not None  # _autopilot
         if hb.armed and (hb.in_air or v.landed_state in (MavLandedState.MAV_LANDED_STATE_IN_AIR,
@@ -269,8 +269,10 @@ class Preflight:
             lat, lon, alt = v.origin_e7
             off = v.offset_ned_m
             dist = math.hypot(float(off[0]), float(off[1]))
-            r.add("EKF origin", PASS, f"{lat * 1e-7:.7f}, {lon * 1e-7:.7f}, {alt * 1e-3:.1f} m: {dist:.0f} m from the "
-                                      "mission origin")
+            far = off_site((float(off[0]), float(off[1]), float(off[2])), cfg.mission.mission.waypoints_ned_m)
+            r.add("EKF origin", PASS if far is None else WARN,
+                  f"{lat * 1e-7:.7f}, {lon * 1e-7:.7f}, {alt * 1e-3:.1f} m: {dist:.0f} m from the mission origin"
+                  + ("" if far is None else " (far from the mission: see 'position')"))
 
     # ------------------------------------------------------------------ parameters
     async def _parameters(self) -> None:
@@ -284,7 +286,7 @@ class Preflight:
             missing = [n for n in d.loss_required_params if n not in values]
             if missing:
                 r.add("companion loss", FAIL, f"no answer for {', '.join(missing)}: the agent refuses to fly without "
-                                              "knowing what the vehicle does if it stops")
+                                              "knowing what the vehicle does if it stops" + self._signs_but_we_do_not())
             else:
                 shaping = tuple(n for n in d.loss_params if n not in d.loss_required_params)
                 values |= await setup.read_params(shaping, SHAPING_PARAM_TIMEOUT_S, SHAPING_PARAM_RETRIES)
@@ -307,7 +309,8 @@ class Preflight:
                 stock = [n for n in d.loop_params if n not in got]
                 parts = [", ".join(f"{n} = {got[n]:g}" for n in d.loop_params if n in got)] if got else []
                 if stock:
-                    parts.append(f"no answer for {', '.join(stock)}: the slot hold assumes the {d.name} defaults")
+                    parts.append(f"no answer for {', '.join(stock)}: the slot hold assumes the {d.name} defaults"
+                                 + self._signs_but_we_do_not())
                 r.add("position loops", WARN if stock else PASS, "; ".join(parts))
             if cfg.launch == "carrier":
                 change = []
@@ -520,6 +523,9 @@ def run(args) -> int:
         print(f"swarmdrop preflight: error: {err}", file=sys.stderr)
         return int(ExitCode.CONFIG)
     report = PreflightReport(cfg.vehicle_id, cfg.autopilot_url)
+    # (the swarm link logs an identity conflict as the flying agent sees it, "avoiding it as an
+    # obstacle"; here the report's swarm check says what it means)
+    logging.getLogger("swarmdrop.swarm").setLevel(logging.CRITICAL)
     node = None
     code = 0
     previous = signal.signal(signal.SIGTERM, _interrupt)  # (a supervisor's stop: the partial report, as Ctrl-C)

@@ -302,13 +302,38 @@ class Setup:
             return True
         if v.other_autopilots and asyncio.get_running_loop().time() - v.other_since > min(IDENTITY_GRACE_S,
                                                                                            cfg.setup_timeout_s):
-            others = ", ".join(str(k) for k in sorted(v.other_autopilots))
-            how = "--target-sysid" if cfg.target_sysid is not None else "the mission"
-            raise NodeFailure(ExitCode.IDENTITY, (
-                f"the autopilot on {cfg.autopilot_url} is sysid {others}, but vehicle {cfg.vehicle_id} flies "
-                f"autopilot sysid {cfg.autopilot_sysid} ({how}): refusing to fly another vehicle's autopilot. "
-                f"Check --vehicle-id and the link; pass --target-sysid N only if this autopilot is meant"))
+            raise self._identity_failure()
         return False
+
+    def _identity_failure(self) -> NodeFailure:
+        v, cfg = self.vehicle, self.cfg
+        others = ", ".join(str(k) for k in sorted(v.other_autopilots))
+        how = "--target-sysid" if cfg.target_sysid is not None else "the mission"
+        return NodeFailure(ExitCode.IDENTITY, (
+            f"the autopilot on {cfg.autopilot_url} is sysid {others}, but vehicle {cfg.vehicle_id} flies "
+            f"autopilot sysid {cfg.autopilot_sysid} ({how}): refusing to fly another vehicle's autopilot. "
+            f"Check --vehicle-id and the link; pass --target-sysid N only if this autopilot is meant"))
+
+    async def wait_for_autopilot(self) -> None:
+        """Wait for our autopilot's HEARTBEAT (ours_heard), up to --setup-timeout.
+
+        Raises:
+            NodeFailure(IDENTITY): only autopilots of other sysids were heard (also when the
+                timeout ends before IDENTITY_GRACE_S has passed since the first of them).
+            NodeFailure(NO_AUTOPILOT): nothing of ours came (saying so if bytes came but no frame).
+        """
+        link = self.vehicle.ep.link
+        try:
+            await self.wait(self.ours_heard, self.cfg.setup_timeout_s, "HEARTBEAT", ExitCode.NO_AUTOPILOT)
+        except NodeFailure as err:
+            if err.code != ExitCode.NO_AUTOPILOT:
+                raise
+            if self.vehicle.other_autopilots:
+                raise self._identity_failure() from None
+            if link.bytes_in and not link.frames_in:
+                raise NodeFailure(err.code, f"{err}: {link.bytes_in} bytes came but no MAVLink frame "
+                                            "(a serial link at the wrong baud rate?)") from None
+            raise
 
     # ------------------------------------------------------------------ set-up
     async def set_up(self) -> None:
@@ -319,19 +344,12 @@ class Setup:
         """
         cfg, v = self.cfg, self.vehicle
         loop = asyncio.get_running_loop()
-        ap_ep = v.ep
         if cfg.autopilot_sysid != cfg.assigned_sysid:
             log.warning("--target-sysid %d overrides the mission's sysid %d of vehicle %d: flying that autopilot as "
                         "vehicle %d", cfg.autopilot_sysid, cfg.assigned_sysid, cfg.vehicle_id, cfg.vehicle_id)
         log.info("waiting for HEARTBEAT of %s (vehicle %d), swarm link on %s", self.ap_name, cfg.vehicle_id,
                  self.swarm_bound())
-        try:
-            await self.wait(self.ours_heard, cfg.setup_timeout_s, "HEARTBEAT", ExitCode.NO_AUTOPILOT)
-        except NodeFailure as err:
-            if err.code == ExitCode.NO_AUTOPILOT and ap_ep.link.bytes_in and not ap_ep.link.frames_in:
-                raise NodeFailure(err.code, f"{err}: {ap_ep.link.bytes_in} bytes came but no MAVLink frame "
-                                            "(a serial link at the wrong baud rate?)") from None
-            raise
+        await self.wait_for_autopilot()
         d = v.ap
         try:
             async with self.announced("telemetry streams (SET_MESSAGE_INTERVAL)"):
