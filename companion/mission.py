@@ -162,23 +162,31 @@ class LossEnvelope:
     def exceeded_by(self, loss) -> list[str]:
         """How an autopilot's LossBehaviour goes beyond this envelope ([] if it does not):
         one phrase per limit, naming the autopilot's value and the mission's."""
+        return [phrase for _kind, phrase in self.excesses(loss)]
+
+    def excesses(self, loss) -> list[tuple[str, str]]:
+        """exceeded_by's phrases with their kind: "timeout" (the setpoint timeout), "action"
+        (what the autopilot does after it) or "limit" (braking, jerk, stop lead), which
+        decides the fix (companion.node.setup_rules.loss_refusal)."""
         from companion.link.dialects.base import AfterLoss
         tol = 1e-6  # relative: parameters travel as float32
         out = []
         if loss.timeout_s > self.timeout_s * (1.0 + tol) + 1e-9:
-            out.append(f"its setpoint timeout {loss.timeout_s:g} s is longer than the mission's {self.timeout_s:g} s")
+            out.append(("timeout", f"its setpoint timeout {loss.timeout_s:g} s is longer than the mission's "
+                                   f"{self.timeout_s:g} s"))
         if loss.then == AfterLoss.LAND and self.then == "hold":
-            out.append("it lands where the mission assumes a hold")
+            out.append(("action", "it lands where the mission assumes a hold"))
         elif loss.then not in (AfterLoss.HOLD, AfterLoss.LAND):
-            out.append(f"it {loss.what_then()}")
+            out.append(("action", f"it {loss.what_then()}"))
         for name, mine, theirs in (("horizontal braking", loss.brake_hor_mps2, self.brake_hor_mps2),
                                    ("vertical braking", loss.brake_ver_mps2, self.brake_ver_mps2),
                                    ("horizontal jerk", loss.jerk_hor_mps3, self.jerk_hor_mps3),
                                    ("vertical jerk", loss.jerk_ver_mps3, self.jerk_ver_mps3)):
             if mine < theirs * (1.0 - tol):
-                out.append(f"its {name} limit {mine:g} is below the mission's {theirs:g}")
+                out.append(("limit", f"its {name} limit {mine:g} is below the mission's {theirs:g}"))
         if loss.stop_lead_s > self.stop_lead_s * (1.0 + tol) + 1e-9:
-            out.append(f"its stop lead {loss.stop_lead_s:g} s is longer than the mission's {self.stop_lead_s:g} s")
+            out.append(("limit", f"its stop lead {loss.stop_lead_s:g} s is longer than the mission's "
+                                 f"{self.stop_lead_s:g} s"))
         return out
 
 

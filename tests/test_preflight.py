@@ -275,11 +275,11 @@ def test_preflight_stopped_by_sigterm_reports_what_it_had(tmp_path):
 
 # ---------------------------------------------------------------------------- the shared rules, pure
 def test_loss_refusal_names_one_fix_per_kind_of_excess():
-    """The rule set-up and preflight share (companion.node.setup.loss_refusal): a long timeout,
+    """The rule set-up and preflight share (companion.node.setup_rules.loss_refusal): a long timeout,
     a landing where the mission holds, and softer braking each get their own fix."""
     from companion.link.dialects import dialect_named
     from companion.mission import LossEnvelope
-    from companion.node.setup import loss_refusal
+    from companion.node.setup_rules import loss_refusal
 
     px4 = dialect_named("px4")
     hold = LossEnvelope()
@@ -298,7 +298,7 @@ def test_loss_refusal_names_one_fix_per_kind_of_excess():
 
 
 def test_off_site_is_measured_from_the_reach_of_the_waypoints():
-    from companion.node.setup import NEAR_MISSION_M, off_site
+    from companion.node.setup_rules import NEAR_MISSION_M, off_site
 
     waypoints = ((100.0, 0.0, -10.0), (0.0, -300.0, -10.0))
     assert off_site((0.0, 0.0, 0.0), waypoints) is None

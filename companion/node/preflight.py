@@ -36,16 +36,12 @@ from companion.link.dialects.base import AfterLoss
 from companion.link.enums import MavLandedState, MsgId
 from companion.node.exits import ExitCode, NodeFailure
 from companion.node.setup import (
-    EXT_STATE_INTERVAL_S,
     LOSS_PARAM_RETRIES,
     LOSS_PARAM_TIMEOUT_S,
     SHAPING_PARAM_RETRIES,
     SHAPING_PARAM_TIMEOUT_S,
-    SYSTEM_TIME_INTERVAL_S,
-    loss_changes,
-    loss_refusal,
-    off_site,
 )
+from companion.node.setup_rules import loss_changes, loss_refusal, mission_epoch_s, off_site, telemetry_streams
 from companion.node.vehicle import CommandError
 
 log = logging.getLogger("swarmdrop.preflight")
@@ -229,10 +225,8 @@ class Preflight:
     async def _streams_clock_origin(self) -> None:
         node, cfg, r = self.node, self.cfg, self.report
         v = node.vehicle
-        asked = ((MsgId.LOCAL_POSITION_NED, 1.0 / cfg.rate_hz), (MsgId.ATTITUDE_QUATERNION, 1.0 / cfg.rate_hz),
-                 (MsgId.EXTENDED_SYS_STATE, EXT_STATE_INTERVAL_S), (MsgId.SYSTEM_TIME, SYSTEM_TIME_INTERVAL_S))
         refused = []
-        for msgid, interval in asked:
+        for msgid, interval in telemetry_streams(cfg.rate_hz):
             try:
                 await v.set_message_interval(msgid, interval)
             except CommandError as err:
@@ -356,7 +350,7 @@ class Preflight:
         node, cfg, r = self.node, self.cfg, self.report
         v, sw = node.vehicle, node.swarm
         if v.unix_offset_us is not None:
-            sw.set_epoch(v.unix_offset_us // 1_000_000 // 3600 * 3600)  # (as set-up: whole hours)
+            sw.set_epoch(mission_epoch_s(v.unix_offset_us))  # (as set-up)
         self._lpn_ms.clear()
         self._att_ms.clear()
         self._counting = True

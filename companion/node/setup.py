@@ -22,20 +22,25 @@ import asyncio
 import contextlib
 import errno
 import logging
-import math
 import os
 import time
 from collections.abc import AsyncIterator, Callable
 
 from companion.config import ConfigError
-from companion.link.dialects.base import AfterLoss, AutopilotDialect, LossBehaviour, PositionLoop
+from companion.link.dialects.base import AfterLoss, LossBehaviour, PositionLoop
 from companion.link.endpoints import Link, MavEndpoint, UdpLink, open_link, parse_url
 from companion.link.enums import MavCmd, MavComponent, MsgId
 from companion.link.signing import Signing, SigningError, TimestampStore, load_key
 from companion.link.wire import Codec
-from companion.mission import LossEnvelope
 from companion.node.config import NodeConfig
 from companion.node.exits import ExitCode, NodeFailure
+from companion.node.setup_rules import (
+    loss_changes,
+    loss_refusal,
+    mission_epoch_s,
+    off_site,
+    telemetry_streams,
+)
 from companion.node.streams import UnreadStreams
 from companion.node.swarmlink import SwarmLink
 from companion.node.vehicle import CommandError, VehicleLink
@@ -51,10 +56,6 @@ SET_UP_LOG_TEXT = "set up in"
 IDENTITY_GRACE_S = 5.0
 """Only other autopilots heard on the link for this long (five of their 1 Hz HEARTBEATs,
 none of ours): refuse (ExitCode.IDENTITY) rather than keep waiting."""
-EXT_STATE_INTERVAL_S = 0.2
-"""EXTENDED_SYS_STATE (landed state) stream period, s."""
-SYSTEM_TIME_INTERVAL_S = 1.0
-"""SYSTEM_TIME (the autopilot's clock) stream period, s."""
 AUTOPILOT_LINK_ID, SWARM_LINK_ID = 0, 1
 """MAVLink 2 signing link ids of the node's two links."""
 COMPANION = MavComponent.MAV_COMP_ID_ONBOARD_COMPUTER
@@ -157,66 +158,6 @@ def open_endpoints(cfg: NodeConfig, codec: Codec, ap_sign: Signing | None, sw_si
         raise ConfigError(f"swarm link --swarm-bind {swarm_address(cfg)}: cannot bind: {err}") from None
     return (MavEndpoint(ap_link, codec, cfg.own_sysid, COMPANION, signing=ap_sign),
             MavEndpoint(sw_link, codec, cfg.own_sysid, COMPANION, signing=sw_sign))
-
-
-def loss_changes(d: AutopilotDialect, then: AfterLoss, values: dict[str, float],
-                 timeout_max_s: float) -> dict[str, float]:
-    """The parameters --set-loss-action `then` writes: the dialect's loss action, and its
-    setpoint timeout down to timeout_max_s (the mission's loss envelope) if it is longer
-    or unknown. Values already right are written again (set_loss_action skips them).
-
-    Raises:
-        ValueError: this autopilot cannot be set to do `then` (the message says why).
-    """
-    fix = d.loss_fix(then)
-    timeout = values.get(d.setpoint_timeout_param)
-    if timeout is None or not timeout <= timeout_max_s:
-        fix = {**fix, d.setpoint_timeout_param: timeout_max_s}
-    return fix
-
-
-def loss_refusal(ap_name: str, d: AutopilotDialect, loss: LossBehaviour, envelope: LossEnvelope) -> str | None:
-    """Why the agent refuses to fly with this companion-loss behaviour (the message names
-    the parameter, what the vehicle would do and the fix), None if it does not: the vehicle
-    must stop and hold or land (`loss.safe`) inside the ghost the swarm keeps clear for it
-    (mission.swarm.loss). The one rule of set-up (verify_loss) and `swarmdrop preflight`."""
-    if not loss.safe:
-        return (f"{ap_name}: {loss.deciding()}: if this companion stops, the vehicle {loss.what_then()}, which the "
-                f"swarm's ghost does not cover. Fix: {d.loss_fix_text()}, or pass --set-loss-action hold|land; or "
-                "--allow-drifting-loss to fly anyway")
-    over = envelope.exceeded_by(loss)
-    if not over:
-        return None
-    # The swarm draws this vehicle's ghost from the mission's envelope: beyond it, a silent
-    # vehicle can fly where its neighbours do not expect it. One fix per kind of excess.
-    fixes = []
-    if any(o.startswith("its setpoint timeout") for o in over):
-        fixes.append(f"set {d.setpoint_timeout_param} to at most {envelope.timeout_s:g} s (--set-loss-action does)")
-    if any(o.startswith("it lands where") for o in over):
-        fixes.append("make it hold (--set-loss-action hold), or set mission.swarm.loss.then: land for every vehicle")
-    if any(not o.startswith(("its setpoint timeout", "it lands where")) for o in over):
-        fixes.append("bring the limits named to the mission's, or widen mission.swarm.loss for every vehicle")
-    return (f"{ap_name}: if this companion stops, the vehicle can leave the ghost the swarm keeps clear for it "
-            f"(mission.swarm.loss): {'; '.join(over)}. Fix: {'; '.join(fixes)}; or --allow-drifting-loss to fly "
-            "anyway")
-
-
-NEAR_MISSION_M = 1000.0
-"""A vehicle farther than this beyond the reach of the mission's waypoints (from its origin) is
-not at the mission's site: a wrong mission.origin, or another site."""
-
-
-def off_site(pos_ned_m: tuple[float, float, float], waypoints_ned_m) -> str | None:
-    """Why a vehicle at pos_ned_m (mission frame, m) is not at the mission's site, None if it is:
-    over NEAR_MISSION_M beyond the farthest waypoint's horizontal distance from the origin.
-    The agent would fly it from there to its slot (a wrong mission.origin by kilometres)."""
-    reach = max(math.hypot(w[0], w[1]) for w in waypoints_ned_m)
-    dist = math.hypot(pos_ned_m[0], pos_ned_m[1])
-    if dist <= reach + NEAR_MISSION_M:
-        return None
-    return (f"the vehicle is {dist:.0f} m from the mission origin ({pos_ned_m[0]:.0f} m N, {pos_ned_m[1]:.0f} m E), "
-            f"the mission's waypoints {reach:.0f} m: the agent would fly it from there. Check mission.origin (the "
-            "flying site's) and that this is the right vehicle")
 
 
 class Setup:
@@ -353,10 +294,7 @@ class Setup:
         d = v.ap
         try:
             async with self.announced("telemetry streams (SET_MESSAGE_INTERVAL)"):
-                for msgid, interval in ((MsgId.LOCAL_POSITION_NED, 1.0 / cfg.rate_hz),
-                                        (MsgId.ATTITUDE_QUATERNION, 1.0 / cfg.rate_hz),
-                                        (MsgId.EXTENDED_SYS_STATE, EXT_STATE_INTERVAL_S),
-                                        (MsgId.SYSTEM_TIME, SYSTEM_TIME_INTERVAL_S)):
+                for msgid, interval in telemetry_streams(cfg.rate_hz):
                     await v.set_message_interval(msgid, interval)
                 await v.request_message(MsgId.SYSTEM_TIME)
         except CommandError as err:
@@ -374,7 +312,7 @@ class Setup:
         # Mission time is Unix time less a whole hour near the autopilot's boot: small floats;
         # every exchanged time is absolute (µs), so agents need not share this epoch.
         assert v.unix_offset_us is not None  # the wait above
-        epoch_s = v.unix_offset_us // 1_000_000 // 3600 * 3600
+        epoch_s = mission_epoch_s(v.unix_offset_us)
         self.epoch_us = epoch_s * 1_000_000
         self.swarm.set_epoch(epoch_s)  # now: the swarm link drops states until it knows the epoch
         await self.check_site()
